@@ -1,0 +1,195 @@
+//! `stitch`: check and run suture plans.
+#![allow(clippy::print_stdout)] // a command-line tool prints its results
+
+mod show;
+
+use anyhow::Context;
+use clap::{Parser, Subcommand, ValueEnum};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::sync::Arc;
+use stitch_engine::{
+    Loaded, OutcomeSchedule, PlanLoader, Report, RunOutcome, Runner, ScriptLimits,
+    ScriptedSupervisor, load_plan_str,
+};
+use stitch_primitives::{OutcomeModel, ScriptedPrimitives};
+use stitch_robot::{SimClock, Wound, WoundSpec};
+
+/// Exit codes, documented in `--help` and `docs/cli.md`.
+mod exit {
+    /// The plan is valid (check), or the mission completed every throw (run).
+    pub const OK: u8 = 0;
+    /// Something outside the plan went wrong: a file could not be read or written.
+    pub const ERROR: u8 = 1;
+    // 2 is clap's: the command line itself is wrong.
+    /// The plan is invalid: a script, unit, range, order or budget error. Nothing ran.
+    pub const INVALID_PLAN: u8 = 3;
+    /// The mission ran and failed with one of the paper's error classes.
+    pub const MISSION_FAILED: u8 = 4;
+    /// The mission was aborted by the supervisor (abort, e-stop, or no supervisor).
+    pub const MISSION_ABORTED: u8 = 5;
+}
+
+const EXIT_CODES: &str = "Exit codes:
+  0  the plan is valid (check) / the mission completed every throw (run)
+  1  a file could not be read or written
+  2  the command line is wrong
+  3  the plan is invalid (script, unit, range, order or budget error); nothing ran
+  4  the mission failed with one of the paper's error classes (I, E, H, T)
+  5  the mission was aborted by the supervisor";
+
+/// Autonomous suturing missions on the dVRK, under a surgeon's supervision.
+#[derive(Debug, Parser)]
+#[command(name = "stitch", version, about, after_help = EXIT_CODES)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Validate a plan script and print it as a tree. Nothing moves.
+    #[command(after_help = EXIT_CODES)]
+    Check {
+        /// The plan script (Rhai), e.g. scripts/stitch.rhai.
+        plan: PathBuf,
+        #[command(flatten)]
+        wound: WoundArgs,
+    },
+    /// Validate and run a plan; print a per-throw timeline and the final outcome.
+    #[command(after_help = EXIT_CODES)]
+    Run {
+        /// The plan script (Rhai), e.g. scripts/stitch.rhai.
+        plan: PathBuf,
+        /// The seed that decides every random draw of a simulated run.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Which robot executes the plan.
+        #[arg(long, value_enum, default_value_t = RobotKind::Scripted)]
+        robot: RobotKind,
+        /// Write the journal (JSON Lines) here.
+        #[arg(long)]
+        journal: Option<PathBuf>,
+        /// Replay an outcome schedule (JSON) instead of drawing outcomes from the seed
+        /// (scripted robot only).
+        #[arg(long)]
+        outcomes: Option<PathBuf>,
+        /// Print the final outcome as JSON instead of the timeline.
+        #[arg(long)]
+        json: bool,
+        #[command(flatten)]
+        wound: WoundArgs,
+    },
+}
+
+#[derive(Debug, clap::Args)]
+struct WoundArgs {
+    /// Number of wound points `wound()` returns to the script.
+    #[arg(long, default_value_t = WoundSpec::default().count)]
+    wound_points: usize,
+    /// Spacing between wound points along +y, in millimetres.
+    #[arg(long, default_value_t = WoundSpec::default().spacing_m * 1e3)]
+    wound_spacing_mm: f64,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+enum RobotKind {
+    /// Outcomes drawn from a seeded distribution (or replayed from --outcomes); moves
+    /// nothing. The default until the mock dVRK lands.
+    Scripted,
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    match run(cli) {
+        Ok(code) => ExitCode::from(code),
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::from(exit::ERROR)
+        }
+    }
+}
+
+fn run(cli: Cli) -> anyhow::Result<u8> {
+    match cli.command {
+        Command::Check { plan, wound } => {
+            let Some(loaded) = load(&plan, &wound)? else { return Ok(exit::INVALID_PLAN) };
+            print!("{}", show::plan_tree(&loaded.plan));
+            println!("valid: {} throws, nothing ran", loaded.plan.throws.len());
+            Ok(exit::OK)
+        }
+        Command::Run { plan, seed, robot, journal, outcomes, json, wound } => {
+            let Some(loaded) = load(&plan, &wound)? else { return Ok(exit::INVALID_PLAN) };
+            let report = match robot {
+                RobotKind::Scripted => run_scripted(&loaded, seed, outcomes.as_deref())?,
+            };
+            if let Some(path) = journal {
+                let file = std::fs::File::create(&path)
+                    .with_context(|| format!("cannot write the journal to {}", path.display()))?;
+                report
+                    .journal
+                    .write_jsonl(std::io::BufWriter::new(file))
+                    .with_context(|| format!("cannot write the journal to {}", path.display()))?;
+            }
+            let mut out = std::io::stdout().lock();
+            if json {
+                serde_json::to_writer_pretty(&mut out, &report.outcome)?;
+                writeln!(out)?;
+            } else {
+                write!(out, "{}", show::timeline(&loaded.plan, &report, seed, robot_name(robot)))?;
+            }
+            Ok(match report.outcome {
+                RunOutcome::Completed => exit::OK,
+                RunOutcome::Failed { .. } => exit::MISSION_FAILED,
+                RunOutcome::Aborted { .. } => exit::MISSION_ABORTED,
+            })
+        }
+    }
+}
+
+fn robot_name(robot: RobotKind) -> &'static str {
+    match robot {
+        RobotKind::Scripted => "the scripted robot",
+    }
+}
+
+/// Load and validate; print plan errors one per line and return `None` if invalid.
+fn load(path: &Path, wound: &WoundArgs) -> anyhow::Result<Option<Loaded>> {
+    let spec = WoundSpec {
+        count: wound.wound_points,
+        spacing_m: wound.wound_spacing_mm * 1e-3,
+        ..WoundSpec::default()
+    };
+    let wound = Wound::linear(&spec).context("invalid --wound-points or --wound-spacing-mm")?;
+    let loader = PlanLoader::new(&wound, ScriptLimits::default());
+    let source = std::fs::read_to_string(path)
+        .with_context(|| format!("cannot read the plan {}", path.display()))?;
+    match load_plan_str(&loader, &path.display().to_string(), &source) {
+        Ok(loaded) => {
+            for line in &loaded.printed {
+                eprintln!("{}: {line}", path.display());
+            }
+            Ok(Some(loaded))
+        }
+        Err(errors) => {
+            eprintln!("{errors}");
+            Ok(None)
+        }
+    }
+}
+
+fn run_scripted(loaded: &Loaded, seed: u64, outcomes: Option<&Path>) -> anyhow::Result<Report> {
+    let clock = SimClock::new();
+    let plan = Arc::new(loaded.plan.clone());
+    let (mut primitives, mut supervisor) = match outcomes {
+        Some(path) => OutcomeSchedule::read(path)?.into_parts(clock.clone()),
+        None => (
+            ScriptedPrimitives::seeded(seed, OutcomeModel::default(), clock.clone()),
+            // Stands in for the supervising surgeon: no commands; interventions recover.
+            ScriptedSupervisor::default(),
+        ),
+    };
+    let seed = outcomes.is_none().then_some(seed);
+    Ok(Runner::new(plan, &mut primitives, &mut supervisor, Arc::new(clock), seed).run())
+}

@@ -1,0 +1,156 @@
+//! Text views of plans and runs.
+
+use std::fmt::Write;
+use stitch_engine::{Plan, Report, RunOutcome, caps, retry_cap};
+use stitch_primitives::{StepOutcome, Value};
+
+fn mm(p: &stitch_robot::Point) -> String {
+    format!("({:.1}, {:.1}, {:.1}) mm", p.x * 1e3, p.y * 1e3, p.z * 1e3)
+}
+
+/// The plan as an indented tree, with each step's parameters in units and its script line.
+pub fn plan_tree(plan: &Plan) -> String {
+    let mut s = String::new();
+    let _ = writeln!(
+        s,
+        "mission \"{}\"  ({}:{}:{})",
+        plan.name, plan.file, plan.pos.line, plan.pos.col
+    );
+    let _ = writeln!(
+        s,
+        "  interventions: {} (engine cap {})",
+        plan.interventions,
+        caps::INTERVENTIONS
+    );
+    for (i, throw) in plan.throws.iter().enumerate() {
+        let _ = writeln!(
+            s,
+            "  throw {}  wound point {}: entry {} → exit {}  (line {})",
+            i + 1,
+            throw.point.index + 1,
+            mm(&throw.point.entry),
+            mm(&throw.point.exit),
+            throw.pos.line
+        );
+        for (j, step) in throw.steps.iter().enumerate() {
+            let params: Vec<String> = step
+                .kind
+                .param_specs()
+                .iter()
+                .filter_map(|spec| {
+                    let v = step.kind.get(spec.name)?;
+                    Some(match v {
+                        Value::Length(m) => format!("{} {:.1} mm", spec.name, m * 1e3),
+                        Value::Angle(r) => format!("{} {:.1}°", spec.name, r.to_degrees()),
+                        Value::Count(n) if spec.name == "retries" => {
+                            let cap = retry_cap(&step.kind).map_or(0, |c| c.0);
+                            format!("retries {n} (cap {cap})")
+                        }
+                        Value::Count(n) => format!("{} {n}", spec.name),
+                    })
+                })
+                .collect();
+            let _ = writeln!(
+                s,
+                "    {}. {:<15} {}  (line {})",
+                j + 1,
+                step.kind.name(),
+                params.join(", "),
+                step.pos.line
+            );
+        }
+    }
+    s
+}
+
+fn outcome_text(o: &StepOutcome) -> String {
+    match o {
+        StepOutcome::Succeeded { measured } => {
+            let mut parts = vec!["ok".to_string()];
+            if let Some(t) = measured.endpoint_travel_m {
+                parts.push(format!("endpoint moved {:.1} cm", t * 100.0));
+            }
+            if let Some(t) = measured.thread_used_m {
+                parts.push(format!("thread {:.1} cm", t * 100.0));
+            }
+            if let Some(e) = measured.entry_error_m {
+                parts.push(format!("entry error {:.2} mm", e * 1e3));
+            }
+            if let Some(e) = measured.exit_error_m {
+                parts.push(format!("exit error {:.2} mm", e * 1e3));
+            }
+            parts.join(", ")
+        }
+        StepOutcome::Failed(f) => {
+            let mut s = format!("FAILED: {}", f.kind.label());
+            if let Some(t) = f.measured.endpoint_travel_m {
+                let _ = write!(s, " (endpoint moved {:.1} cm)", t * 100.0);
+            }
+            if let Some(d) = f.measured.normal_change_rad {
+                let _ = write!(s, " (normal changed {:.1}°)", d.to_degrees());
+            }
+            s
+        }
+    }
+}
+
+/// A per-throw timeline of a run and its final outcome.
+pub fn timeline(plan: &Plan, report: &Report, seed: u64, robot: &str) -> String {
+    let mut s = String::new();
+    let _ = writeln!(s, "{} on {robot}, seed {seed}", plan.name);
+    for (i, t) in report.throws.iter().enumerate() {
+        if t.attempts.is_empty() {
+            continue;
+        }
+        let start = t.attempts.first().map_or(0.0, |a| a.start_s);
+        let end = t.attempts.last().map_or(0.0, |a| a.start_s + a.duration_s);
+        let status = if t.completed { "done" } else { "stopped" };
+        let _ = writeln!(
+            s,
+            "throw {} ({status}): {:.1} s, {} retries, {} interventions",
+            i + 1,
+            end - start,
+            t.retries,
+            t.interventions
+        );
+        for a in &t.attempts {
+            let label = if a.attempt > 0 {
+                format!("{} #{}", a.primitive, a.attempt + 1)
+            } else {
+                a.primitive.to_string()
+            };
+            let _ = writeln!(
+                s,
+                "  {:>7.1} s  {:<18} {:>5.1} s  {}",
+                a.start_s,
+                label,
+                a.duration_s,
+                outcome_text(&a.outcome)
+            );
+        }
+    }
+    let done = report.throws.iter().filter(|t| t.completed).count();
+    let outcome = match &report.outcome {
+        RunOutcome::Completed => "completed".to_string(),
+        RunOutcome::Failed { class, throw, primitive, reason, .. } => format!(
+            "failed, class {class}, in throw {} at {primitive}{}",
+            throw + 1,
+            reason.as_ref().map(|r| format!(": {}", r.label())).unwrap_or_default()
+        ),
+        RunOutcome::Aborted { by, throw, step } => format!(
+            "aborted ({by:?}) before throw {} step {}; arms held",
+            throw + 1,
+            step + 1
+        ),
+    };
+    let _ = writeln!(s, "outcome: {outcome}");
+    let _ = writeln!(
+        s,
+        "sutures completed: {done} of {}; interventions {} of {}; simulated time {:.1} s",
+        plan.throws.len(),
+        report.interventions,
+        plan.interventions.min(caps::INTERVENTIONS),
+        report.duration_s
+    );
+    s
+}

@@ -1,0 +1,149 @@
+//! The `stitch` binary as a user runs it.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn stitch(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_stitch"))
+        .args(args)
+        .current_dir(root())
+        .output()
+        .expect("the stitch binary runs")
+}
+
+fn root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("stitch-cli-test-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    dir.join(name)
+}
+
+fn text(b: &[u8]) -> String {
+    String::from_utf8_lossy(b).into_owned()
+}
+
+#[test]
+fn check_prints_the_plan_tree_and_exits_zero() {
+    let out = stitch(&["check", "scripts/stitch.rhai"]);
+    assert_eq!(out.status.code(), Some(0), "{}", text(&out.stderr));
+    let s = text(&out.stdout);
+    assert!(s.contains("mission \"STITCH\""), "{s}");
+    assert!(s.contains("throw 6"), "{s}");
+    assert!(s.contains("extract         retries 5 (cap 5)"), "{s}");
+    assert!(s.contains("valid: 6 throws, nothing ran"), "{s}");
+}
+
+#[test]
+fn the_same_seed_writes_the_same_journal_and_another_seed_does_not() {
+    let (a, b, c) = (tmp("a.jsonl"), tmp("b.jsonl"), tmp("c.jsonl"));
+    for (seed, path) in [("1", &a), ("1", &b), ("2", &c)] {
+        let out = stitch(&[
+            "run",
+            "scripts/stitch.rhai",
+            "--seed",
+            seed,
+            "--journal",
+            path.to_str().expect("utf-8 path"),
+        ]);
+        assert!(matches!(out.status.code(), Some(0 | 4)), "{}", text(&out.stderr));
+    }
+    let (a, b, c) = (
+        std::fs::read(a).expect("a"),
+        std::fs::read(b).expect("b"),
+        std::fs::read(c).expect("c"),
+    );
+    assert!(!a.is_empty());
+    assert_eq!(a, b, "seed 1 twice");
+    assert_ne!(a, c, "seed 1 and seed 2");
+}
+
+#[test]
+fn run_prints_a_timeline_and_the_outcome() {
+    let out = stitch(&["run", "scripts/stitch_human.rhai", "--seed", "3"]);
+    let s = text(&out.stdout);
+    assert!(s.starts_with("STITCH + Human on the scripted robot, seed 3"), "{s}");
+    assert!(s.contains("throw 1 ("), "{s}");
+    assert!(s.contains("outcome: "), "{s}");
+    let code = out.status.code();
+    if s.contains("outcome: completed") {
+        assert_eq!(code, Some(0));
+    } else {
+        assert_eq!(code, Some(4), "{s}");
+    }
+}
+
+fn check_error(source: &str) -> (Option<i32>, String, String) {
+    let path = tmp(&format!("bad-{}.rhai", source.len()));
+    std::fs::write(&path, source).expect("write");
+    let p = path.to_str().expect("utf-8");
+    let out = stitch(&["run", p]);
+    let err = text(&out.stderr);
+    (out.status.code(), err, p.to_string())
+}
+
+#[test]
+fn invalid_plans_get_one_line_with_their_position_and_exit_three_without_running() {
+    let good = "insert(), sweep(), extract(), cinch(), handover()";
+    for (source, at, says) in [
+        ("let t = suture(wound()[0], [insert(),, sweep()]);".to_string(), ":1:", "syntax error"),
+        (format!("let t = suture(wound()[0], [\n  {good},\n  stitch_it()]);"), ":3:3:", "unknown function or primitive `stitch_it`"),
+        (format!("let t = suture(wound()[0], [\n  insert(#{{ rotation: mm(45) }}), {good}]);"), ":2:3:", "must be an angle"),
+        (
+            "let t = suture(wound()[0], [insert(), sweep(),\n   extract(#{ retries: 9 }), handover()]);\nmission(#{ name: \"x\", throws: [t] })".to_string(),
+            ":2:4:",
+            "retries 9 exceeds the engine's hard cap of 5",
+        ),
+        (
+            "let t = suture(wound()[0], [insert(), sweep(),\n   handover(), extract()]);\nmission(#{ name: \"x\", throws: [t] })".to_string(),
+            ":2:4:",
+            "handover needs the needle in the left jaw",
+        ),
+    ] {
+        let (code, err, file) = check_error(&source);
+        assert_eq!(code, Some(3), "{err}");
+        assert_eq!(err.lines().count(), 1, "one line: {err}");
+        assert!(err.starts_with(&format!("{file}{at}")), "expected {file}{at}…: {err}");
+        assert!(err.contains(says), "{err}");
+    }
+}
+
+#[test]
+fn a_replayed_schedule_reproduces_its_outcome() {
+    let schedule = tmp("schedule.json");
+    std::fs::write(
+        &schedule,
+        r#"{"outcomes": ["ok", "ok", "thread"], "supervisor": [], "interventions": []}"#,
+    )
+    .expect("write");
+    let out = stitch(&[
+        "run",
+        "scripts/stitch.rhai",
+        "--outcomes",
+        schedule.to_str().expect("utf-8"),
+        "--json",
+    ]);
+    assert_eq!(out.status.code(), Some(4));
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).expect("json outcome");
+    assert_eq!(v["result"], "failed");
+    assert_eq!(v["class"], "T");
+    assert_eq!(v["primitive"], "extract");
+}
+
+#[test]
+fn an_e_stop_in_a_schedule_exits_five() {
+    let schedule = tmp("estop.json");
+    std::fs::write(&schedule, r#"{"supervisor": [{"at": 2, "command": "e-stop"}]}"#).expect("write");
+    let out = stitch(&["run", "scripts/stitch.rhai", "--outcomes", schedule.to_str().expect("utf-8")]);
+    assert_eq!(out.status.code(), Some(5), "{}", text(&out.stdout));
+    assert!(text(&out.stdout).contains("arms held"));
+}
+
+#[test]
+fn a_missing_plan_file_exits_one_with_the_reason() {
+    let out = stitch(&["check", "scripts/no_such_plan.rhai"]);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(text(&out.stderr).contains("cannot read the plan"), "{}", text(&out.stderr));
+}

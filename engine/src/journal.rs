@@ -1,0 +1,218 @@
+//! The journal: every transition, step start and end, outcome, retry, intervention, supervisor
+//! command and hold, with simulated time, as JSON Lines. The same seed gives the same journal,
+//! byte for byte: records hold no wall-clock time, no addresses and no unordered maps.
+
+use crate::plan::FailureClass;
+use crate::supervisor::{InterventionResult, SupervisorCommand};
+use serde::{Deserialize, Serialize};
+use std::io::{self, Write};
+use std::time::Duration;
+use stitch_primitives::{FailureKind, StepOutcome};
+
+/// Why a run was aborted.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum AbortCause {
+    /// The supervisor aborted.
+    Abort,
+    /// The supervisor pressed the emergency stop.
+    EStop,
+    /// The supervisor gave no command while the run was paused or taken over.
+    SupervisorSilent,
+}
+
+/// How a run ended.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "result", rename_all = "snake_case")]
+pub enum RunOutcome {
+    /// Every throw of the plan succeeded.
+    Completed,
+    /// A step failed beyond its retries and the intervention budget.
+    Failed {
+        /// The paper's error class.
+        class: FailureClass,
+        /// Throw index, 0-based.
+        throw: usize,
+        /// Step index within the throw, 0-based.
+        step: usize,
+        /// The step's name.
+        primitive: String,
+        /// The last failure of that step, if one was reported (an intervention can fail too).
+        #[serde(skip_serializing_if = "Option::is_none")]
+        reason: Option<FailureKind>,
+    },
+    /// The supervisor stopped the run; the arms hold.
+    Aborted {
+        /// Why.
+        by: AbortCause,
+        /// Throw index where it stopped, 0-based.
+        throw: usize,
+        /// Step index where it stopped, 0-based.
+        step: usize,
+    },
+}
+
+/// One journal line's content.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "event", rename_all = "snake_case")]
+pub enum Entry {
+    /// The plan about to run.
+    Plan {
+        /// Mission name.
+        name: String,
+        /// Script file.
+        file: String,
+        /// Number of throws.
+        throws: usize,
+        /// Intervention budget.
+        interventions: u8,
+        /// The seed that decides a simulated run, if any.
+        #[serde(skip_serializing_if = "Option::is_none")]
+        seed: Option<u64>,
+    },
+    /// A state machine transition.
+    Transition {
+        /// Source state.
+        from: String,
+        /// Target state.
+        to: String,
+    },
+    /// A step attempt begins.
+    StepStart {
+        /// Throw index, 0-based.
+        throw: usize,
+        /// Step index, 0-based.
+        step: usize,
+        /// Step name.
+        primitive: String,
+        /// Attempt, 0-based.
+        attempt: u32,
+    },
+    /// A step attempt ended.
+    StepEnd {
+        /// Throw index, 0-based.
+        throw: usize,
+        /// Step index, 0-based.
+        step: usize,
+        /// Step name.
+        primitive: String,
+        /// Attempt, 0-based.
+        attempt: u32,
+        /// What happened.
+        outcome: StepOutcome,
+    },
+    /// The machine retries a step because its recovery condition holds.
+    Retry {
+        /// Throw index, 0-based.
+        throw: usize,
+        /// Step index, 0-based.
+        step: usize,
+        /// Step name.
+        primitive: String,
+        /// This retry's number, 1-based.
+        retry: u8,
+        /// The effective cap: the plan's retries bounded by the engine's hard cap.
+        cap: u8,
+    },
+    /// The robot asks the supervising surgeon for help.
+    InterventionRequested {
+        /// Throw index, 0-based.
+        throw: usize,
+        /// Step index, 0-based.
+        step: usize,
+        /// The failure's class.
+        class: FailureClass,
+        /// Interventions used, this one included.
+        used: u8,
+        /// The effective budget.
+        budget: u8,
+    },
+    /// The surgeon's intervention ended.
+    InterventionEnded {
+        /// Throw index, 0-based.
+        throw: usize,
+        /// Step index, 0-based.
+        step: usize,
+        /// How.
+        result: InterventionResult,
+    },
+    /// A command from the supervisor reached the machine.
+    Supervisor {
+        /// The command.
+        command: SupervisorCommand,
+        /// Whether the machine acted on it (a resume while running is ignored).
+        acted: bool,
+    },
+    /// The arms were told to hold.
+    Hold {
+        /// The state that asked for it.
+        state: String,
+        /// Whether the robot confirmed; an error's message otherwise.
+        #[serde(skip_serializing_if = "Option::is_none")]
+        error: Option<String>,
+    },
+    /// The run ended.
+    Finished {
+        /// How.
+        outcome: RunOutcome,
+    },
+}
+
+/// One journal line.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Record {
+    /// Sequence number, from 0.
+    pub seq: u64,
+    /// Simulated (or robot) time since the run started, s.
+    pub t_s: f64,
+    /// What happened.
+    #[serde(flatten)]
+    pub entry: Entry,
+}
+
+/// The journal of one run, kept in memory; [`Journal::write_jsonl`] writes it out.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Journal {
+    records: Vec<Record>,
+    now: Duration,
+}
+
+impl Journal {
+    /// An empty journal.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Set the time stamped on the next records.
+    pub fn set_now(&mut self, now: Duration) {
+        self.now = now;
+    }
+
+    /// Append an entry at the current time.
+    pub fn push(&mut self, entry: Entry) {
+        let seq = self.records.len() as u64;
+        self.records.push(Record { seq, t_s: self.now.as_secs_f64(), entry });
+    }
+
+    /// All records, in order.
+    pub fn records(&self) -> &[Record] {
+        &self.records
+    }
+
+    /// Write every record as one JSON object per line.
+    pub fn write_jsonl(&self, mut out: impl Write) -> io::Result<()> {
+        for r in &self.records {
+            serde_json::to_writer(&mut out, r)?;
+            out.write_all(b"\n")?;
+        }
+        out.flush()
+    }
+
+    /// The journal as JSON Lines text.
+    pub fn to_jsonl(&self) -> String {
+        let mut buf = Vec::new();
+        // Writing to a Vec cannot fail; serialising these types cannot either.
+        let _ = self.write_jsonl(&mut buf);
+        String::from_utf8_lossy(&buf).into_owned()
+    }
+}

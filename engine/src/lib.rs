@@ -1,0 +1,39 @@
+#![doc = include_str!("../README.md")]
+
+mod journal;
+mod machine;
+mod plan;
+mod runner;
+mod schedule;
+mod script;
+mod supervisor;
+mod validate;
+
+pub use journal::{AbortCause, Entry, Journal, Record, RunOutcome};
+pub use machine::{Ctx, Cursor, Effect, Event, Mission, State, recovery_condition, state_label, state_parts};
+pub use plan::{FailureClass, NeedleHolder, Plan, PlanError, PlanErrors, SourcePos, Step, Throw, caps};
+pub use runner::{Attempt, Report, Runner, ThrowSummary};
+pub use schedule::{OutcomeSchedule, ScheduleError};
+pub use script::{API, Angle, Length, Loaded, PlanLoader, ScriptLimits};
+pub use supervisor::{
+    InterventionRequest, InterventionResult, ScriptedSupervisor, Supervisor, SupervisorCommand,
+    TimedCommand,
+};
+pub use validate::{retry_cap, validate};
+
+use std::path::Path;
+
+/// Evaluate the plan script at `path` in the sandbox and validate it: the plan is returned
+/// only if nothing is wrong with it.
+pub fn load_plan(loader: &PlanLoader, path: &Path) -> Result<Loaded, PlanErrors> {
+    let loaded = loader.eval_file(path)?;
+    validate(&loaded.plan)?;
+    Ok(loaded)
+}
+
+/// As [`load_plan`], from a string named `file` in errors.
+pub fn load_plan_str(loader: &PlanLoader, file: &str, source: &str) -> Result<Loaded, PlanErrors> {
+    let loaded = loader.eval_str(file, source)?;
+    validate(&loaded.plan)?;
+    Ok(loaded)
+}

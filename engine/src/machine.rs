@@ -1,0 +1,460 @@
+//! The typed hierarchical state machine (statig) that executes a plan.
+//!
+//! ```text
+//! supervised                      abort / e-stop → aborted (arms hold)
+//! ├── mission
+//! │   └── throw                   pause → paused; take-over → taken_over
+//! │       ├── inserting · sweeping · extracting · cinching · handing_over · correcting
+//! │       │   · perceiving        (one per phase: the step being attempted)
+//! │       └── awaiting_intervention
+//! ├── paused                      resume → the step that was next
+//! └── taken_over                  hand-back → the step that was next
+//! ready → (start) → first step;   completed · failed · aborted are final
+//! ```
+//!
+//! The machine owns no hardware: the runner reads the state, performs the step it names, and
+//! dispatches the outcome. The hard caps (retries, interventions) are guards here, so no plan
+//! can exceed them whatever it asks for.
+
+use crate::journal::{AbortCause, Entry, Journal};
+use crate::plan::{FailureClass, Plan, caps};
+use crate::supervisor::{InterventionResult, SupervisorCommand};
+use serde::Serialize;
+use statig::prelude::*;
+use std::sync::Arc;
+use stitch_primitives::{Failure, FailureKind, StepKind, StepOutcome};
+
+/// Where the machine is in the plan.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize)]
+pub struct Cursor {
+    /// Throw index, 0-based.
+    pub throw: usize,
+    /// Step index within the throw, 0-based.
+    pub step: usize,
+    /// Retries of this step so far.
+    pub retries: u8,
+}
+
+/// What the machine reacts to.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Event {
+    /// Begin the mission.
+    Start,
+    /// The step the machine is in finished one attempt.
+    StepFinished(StepOutcome),
+    /// The requested intervention ended.
+    InterventionFinished(InterventionResult),
+    /// The supervisor commanded.
+    Supervisor(SupervisorCommand),
+    /// The supervisor is gone (no command will come while paused or taken over).
+    SupervisorLost,
+}
+
+/// Side effects the machine asks of the runner, in order.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Effect {
+    /// Stop all motion and hold both arms.
+    HoldArms,
+}
+
+/// What the machine is given with each event: the journal, and a queue of effects.
+#[derive(Debug, Default)]
+pub struct Ctx {
+    /// The run's journal.
+    pub journal: Journal,
+    /// Effects the runner must perform after this dispatch.
+    pub effects: Vec<Effect>,
+}
+
+/// The machine's shared storage: the plan and the mission's counters.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Mission {
+    plan: Arc<Plan>,
+    interventions_used: u8,
+    last_failure: Option<Failure>,
+}
+
+impl Mission {
+    /// A mission for `plan`, ready to start. The plan should have been validated; the machine
+    /// enforces the hard caps even if it was not.
+    pub fn new(plan: Arc<Plan>) -> Self {
+        Self { plan, interventions_used: 0, last_failure: None }
+    }
+
+    /// The plan.
+    pub fn plan(&self) -> &Plan {
+        &self.plan
+    }
+
+    /// The plan, shared.
+    pub fn plan_arc(&self) -> &Arc<Plan> {
+        &self.plan
+    }
+
+    /// Interventions requested so far.
+    pub fn interventions_used(&self) -> u8 {
+        self.interventions_used
+    }
+
+    /// The effective intervention budget: the plan's, bounded by the hard cap.
+    pub fn intervention_budget(&self) -> u8 {
+        self.plan.interventions.min(caps::INTERVENTIONS)
+    }
+
+    /// The last failure reported by a step.
+    pub fn last_failure(&self) -> Option<&Failure> {
+        self.last_failure.as_ref()
+    }
+
+    fn kind(&self, c: Cursor) -> Option<&StepKind> {
+        self.plan.throws.get(c.throw)?.steps.get(c.step).map(|s| &s.kind)
+    }
+
+    /// The state that attempts the step at `c`, or `completed` past the last step.
+    fn step_state(&self, c: Cursor) -> State {
+        match self.kind(c) {
+            Some(StepKind::Insert(_)) => State::inserting(c),
+            Some(StepKind::Sweep(_)) => State::sweeping(c),
+            Some(StepKind::Extract(_)) => State::extracting(c),
+            Some(StepKind::Cinch(_)) => State::cinching(c),
+            Some(StepKind::Handover(_)) => State::handing_over(c),
+            Some(StepKind::Correct(_)) => State::correcting(c),
+            Some(StepKind::EstimateNeedle(_) | StepKind::TrackThread(_)) => State::perceiving(c),
+            None => State::completed(),
+        }
+    }
+
+    /// The step after `c`: the next in the throw, the first of the next throw, or `completed`.
+    fn next_state(&self, c: Cursor) -> State {
+        let steps = self.plan.throws.get(c.throw).map_or(0, |t| t.steps.len());
+        let next = if c.step + 1 < steps {
+            Cursor { throw: c.throw, step: c.step + 1, retries: 0 }
+        } else {
+            Cursor { throw: c.throw + 1, step: 0, retries: 0 }
+        };
+        if next.throw >= self.plan.throws.len() {
+            State::completed()
+        } else {
+            self.step_state(next)
+        }
+    }
+
+    /// The hard-capped retry budget of the step at `c`.
+    pub fn retry_cap(&self, c: Cursor) -> u8 {
+        self.kind(c)
+            .and_then(|k| Some(k.retries()?.min(crate::validate::retry_cap(k)?.0)))
+            .unwrap_or(0)
+    }
+
+    /// The paper's class for a failure of the step at `c`.
+    pub fn classify(&self, c: Cursor, failure: &FailureKind) -> FailureClass {
+        if failure.is_thread() {
+            FailureClass::Thread
+        } else {
+            self.plan.phase_class(c.throw, c.step)
+        }
+    }
+
+    fn on_step_outcome(&mut self, c: Cursor, ctx: &mut Ctx, event: &Event) -> Outcome<State> {
+        let Event::StepFinished(outcome) = event else { return Super };
+        let failure = match outcome {
+            StepOutcome::Succeeded { .. } => return Transition(self.next_state(c)),
+            StepOutcome::Failed(f) => f,
+        };
+        self.last_failure = Some(failure.clone());
+        let class = self.classify(c, &failure.kind);
+        let name = self.kind(c).map_or("?", StepKind::name).to_string();
+        let cap = self.retry_cap(c);
+        if self.kind(c).is_some_and(|k| recovery_condition(k, failure)) && c.retries < cap {
+            let retries = c.retries + 1;
+            ctx.journal.push(Entry::Retry {
+                throw: c.throw,
+                step: c.step,
+                primitive: name,
+                retry: retries,
+                cap,
+            });
+            return Transition(self.step_state(Cursor { retries, ..c }));
+        }
+        let budget = self.intervention_budget();
+        if self.interventions_used < budget {
+            self.interventions_used += 1;
+            ctx.journal.push(Entry::InterventionRequested {
+                throw: c.throw,
+                step: c.step,
+                class,
+                used: self.interventions_used,
+                budget,
+            });
+            return Transition(State::awaiting_intervention(c, class));
+        }
+        Transition(State::failed(c, class))
+    }
+}
+
+/// The paper's recovery conditions ("Motion Failure Recovery", "Needle Handover"): retry an
+/// extraction whose endpoint moved less than the threshold, a handover whose grasp left the
+/// needle normal unchanged, and any perceiving step after a dropout. Thread failures, dropped
+/// needles and arm faults are never retried.
+pub fn recovery_condition(kind: &StepKind, failure: &Failure) -> bool {
+    match &failure.kind {
+        k if k.is_thread() => false,
+        FailureKind::NeedleDropped | FailureKind::ArmFault { .. } => false,
+        FailureKind::PerceptionDropout => matches!(
+            kind,
+            StepKind::Extract(_)
+                | StepKind::Handover(_)
+                | StepKind::EstimateNeedle(_)
+                | StepKind::TrackThread(_)
+        ),
+        _ => match kind {
+            StepKind::Extract(p) => {
+                failure.measured.endpoint_travel_m.is_some_and(|t| t < p.min_travel_m)
+            }
+            StepKind::Handover(p) => {
+                failure.measured.normal_change_rad.is_some_and(|d| d <= p.normal_tolerance_rad)
+            }
+            _ => false,
+        },
+    }
+}
+
+fn supervisor_ignored(ctx: &mut Ctx, command: SupervisorCommand) -> Outcome<State> {
+    ctx.journal.push(Entry::Supervisor { command, acted: false });
+    Handled
+}
+
+#[state_machine(
+    initial = "State::ready()",
+    state(derive(Debug, Clone, PartialEq, Eq, Hash)),
+    superstate(derive(Debug)),
+    after_transition = "Self::after_transition"
+)]
+impl Mission {
+    /// Before the mission starts.
+    #[state]
+    fn ready(&mut self, context: &mut Ctx, event: &Event) -> Outcome<State> {
+        match event {
+            Event::Start if self.plan.throws.is_empty() => Transition(State::completed()),
+            Event::Start => Transition(self.step_state(Cursor::default())),
+            Event::Supervisor(c @ (SupervisorCommand::Abort | SupervisorCommand::EStop)) => {
+                context.journal.push(Entry::Supervisor { command: *c, acted: true });
+                let by = if *c == SupervisorCommand::EStop { AbortCause::EStop } else { AbortCause::Abort };
+                Transition(State::aborted(Cursor::default(), by))
+            }
+            Event::Supervisor(c) => supervisor_ignored(context, *c),
+            _ => Handled,
+        }
+    }
+
+    /// Needle insertion (right PSM).
+    #[state(superstate = "throw")]
+    fn inserting(&mut self, cursor: &mut Cursor, context: &mut Ctx, event: &Event) -> Outcome<State> {
+        self.on_step_outcome(*cursor, context, event)
+    }
+
+    /// Thread sweeping (right PSM, jaw open).
+    #[state(superstate = "throw")]
+    fn sweeping(&mut self, cursor: &mut Cursor, context: &mut Ctx, event: &Event) -> Outcome<State> {
+        self.on_step_outcome(*cursor, context, event)
+    }
+
+    /// Needle extraction (left PSM).
+    #[state(superstate = "throw")]
+    fn extracting(&mut self, cursor: &mut Cursor, context: &mut Ctx, event: &Event) -> Outcome<State> {
+        self.on_step_outcome(*cursor, context, event)
+    }
+
+    /// Suture cinching (left PSM).
+    #[state(superstate = "throw")]
+    fn cinching(&mut self, cursor: &mut Cursor, context: &mut Ctx, event: &Event) -> Outcome<State> {
+        self.on_step_outcome(*cursor, context, event)
+    }
+
+    /// Needle handover (left → right).
+    #[state(superstate = "throw")]
+    fn handing_over(&mut self, cursor: &mut Cursor, context: &mut Ctx, event: &Event) -> Outcome<State> {
+        self.on_step_outcome(*cursor, context, event)
+    }
+
+    /// Needle pose correction (right PSM).
+    #[state(superstate = "throw")]
+    fn correcting(&mut self, cursor: &mut Cursor, context: &mut Ctx, event: &Event) -> Outcome<State> {
+        self.on_step_outcome(*cursor, context, event)
+    }
+
+    /// A perception query (needle pose or thread).
+    #[state(superstate = "throw")]
+    fn perceiving(&mut self, cursor: &mut Cursor, context: &mut Ctx, event: &Event) -> Outcome<State> {
+        self.on_step_outcome(*cursor, context, event)
+    }
+
+    /// The robot asked the surgeon for help; the arms hold until the intervention ends.
+    #[state(superstate = "throw", entry_action = "hold_arms")]
+    fn awaiting_intervention(
+        &mut self,
+        cursor: &mut Cursor,
+        class: &mut FailureClass,
+        context: &mut Ctx,
+        event: &Event,
+    ) -> Outcome<State> {
+        match event {
+            Event::InterventionFinished(result) => {
+                context.journal.push(Entry::InterventionEnded {
+                    throw: cursor.throw,
+                    step: cursor.step,
+                    result: *result,
+                });
+                match result {
+                    InterventionResult::Recovered => Transition(self.step_state(*cursor)),
+                    InterventionResult::Failed => Transition(State::failed(*cursor, *class)),
+                }
+            }
+            // The surgeon is already at the console: pause and take-over change nothing.
+            Event::Supervisor(
+                c @ (SupervisorCommand::Pause
+                | SupervisorCommand::TakeOver
+                | SupervisorCommand::Resume
+                | SupervisorCommand::HandBack),
+            ) => supervisor_ignored(context, *c),
+            _ => Super,
+        }
+    }
+
+    /// A throw in progress: the supervisor may pause or take over before any step.
+    #[superstate(superstate = "mission")]
+    fn throw(cursor: &mut Cursor, context: &mut Ctx, event: &Event) -> Outcome<State> {
+        match event {
+            Event::Supervisor(SupervisorCommand::Pause) => {
+                context.journal.push(Entry::Supervisor { command: SupervisorCommand::Pause, acted: true });
+                Transition(State::paused(*cursor))
+            }
+            Event::Supervisor(SupervisorCommand::TakeOver) => {
+                context.journal.push(Entry::Supervisor { command: SupervisorCommand::TakeOver, acted: true });
+                Transition(State::taken_over(*cursor))
+            }
+            Event::Supervisor(c @ (SupervisorCommand::Resume | SupervisorCommand::HandBack)) => {
+                supervisor_ignored(context, *c)
+            }
+            _ => Super,
+        }
+    }
+
+    /// The mission: every throw of the plan.
+    #[superstate(superstate = "supervised")]
+    fn mission(cursor: &mut Cursor, event: &Event) -> Outcome<State> {
+        let _ = (cursor, event);
+        Super
+    }
+
+    /// Paused by the supervisor; the arms hold.
+    #[state(superstate = "supervised", entry_action = "hold_arms")]
+    fn paused(&mut self, cursor: &mut Cursor, context: &mut Ctx, event: &Event) -> Outcome<State> {
+        match event {
+            Event::Supervisor(SupervisorCommand::Resume) => {
+                context.journal.push(Entry::Supervisor { command: SupervisorCommand::Resume, acted: true });
+                Transition(self.step_state(*cursor))
+            }
+            Event::Supervisor(SupervisorCommand::TakeOver) => {
+                context.journal.push(Entry::Supervisor { command: SupervisorCommand::TakeOver, acted: true });
+                Transition(State::taken_over(*cursor))
+            }
+            Event::Supervisor(c @ (SupervisorCommand::Pause | SupervisorCommand::HandBack)) => {
+                supervisor_ignored(context, *c)
+            }
+            _ => Super,
+        }
+    }
+
+    /// The surgeon teleoperates; the engine commands nothing.
+    #[state(superstate = "supervised", entry_action = "hold_arms")]
+    fn taken_over(&mut self, cursor: &mut Cursor, context: &mut Ctx, event: &Event) -> Outcome<State> {
+        match event {
+            Event::Supervisor(SupervisorCommand::HandBack) => {
+                context.journal.push(Entry::Supervisor { command: SupervisorCommand::HandBack, acted: true });
+                Transition(self.step_state(*cursor))
+            }
+            Event::Supervisor(
+                c @ (SupervisorCommand::Pause | SupervisorCommand::Resume | SupervisorCommand::TakeOver),
+            ) => supervisor_ignored(context, *c),
+            _ => Super,
+        }
+    }
+
+    /// Everything under supervision: abort and e-stop end the run from any state here.
+    #[superstate]
+    fn supervised(cursor: &mut Cursor, context: &mut Ctx, event: &Event) -> Outcome<State> {
+        match event {
+            Event::Supervisor(c @ (SupervisorCommand::Abort | SupervisorCommand::EStop)) => {
+                context.journal.push(Entry::Supervisor { command: *c, acted: true });
+                let by = if *c == SupervisorCommand::EStop { AbortCause::EStop } else { AbortCause::Abort };
+                Transition(State::aborted(*cursor, by))
+            }
+            Event::Supervisor(c) => supervisor_ignored(context, *c),
+            Event::SupervisorLost => Transition(State::aborted(*cursor, AbortCause::SupervisorSilent)),
+            _ => Handled,
+        }
+    }
+
+    /// Every throw succeeded.
+    #[state]
+    fn completed(event: &Event) -> Outcome<State> {
+        let _ = event;
+        Handled
+    }
+
+    /// A step failed beyond its retries and the intervention budget; the arms hold.
+    #[state(entry_action = "hold_arms")]
+    fn failed(cursor: &mut Cursor, class: &mut FailureClass, event: &Event) -> Outcome<State> {
+        let _ = (cursor, class, event);
+        Handled
+    }
+
+    /// The supervisor stopped the run; the arms hold; nothing moves again.
+    #[state(entry_action = "hold_arms")]
+    fn aborted(cursor: &mut Cursor, by: &mut AbortCause, event: &Event) -> Outcome<State> {
+        let _ = (cursor, by, event);
+        Handled
+    }
+
+    #[action]
+    fn hold_arms(context: &mut Ctx) {
+        context.effects.push(Effect::HoldArms);
+    }
+}
+
+impl Mission {
+    fn after_transition(&mut self, source: &State, target: &State, context: &mut Ctx) {
+        context.journal.push(Entry::Transition { from: state_label(source), to: state_label(target) });
+    }
+}
+
+/// A state's name with its cursor, as the journal writes it: `extracting(t1 s3 r0)` (throw
+/// and step 1-based, retries so far).
+pub fn state_label(state: &State) -> String {
+    let (name, cursor) = state_parts(state);
+    match cursor {
+        Some(c) => format!("{name}(t{} s{} r{})", c.throw + 1, c.step + 1, c.retries),
+        None => name.to_string(),
+    }
+}
+
+/// A state's name and cursor.
+pub fn state_parts(state: &State) -> (&'static str, Option<Cursor>) {
+    match state {
+        State::Ready {} => ("ready", None),
+        State::Inserting { cursor } => ("inserting", Some(*cursor)),
+        State::Sweeping { cursor } => ("sweeping", Some(*cursor)),
+        State::Extracting { cursor } => ("extracting", Some(*cursor)),
+        State::Cinching { cursor } => ("cinching", Some(*cursor)),
+        State::HandingOver { cursor } => ("handing_over", Some(*cursor)),
+        State::Correcting { cursor } => ("correcting", Some(*cursor)),
+        State::Perceiving { cursor } => ("perceiving", Some(*cursor)),
+        State::AwaitingIntervention { cursor, .. } => ("awaiting_intervention", Some(*cursor)),
+        State::Paused { cursor } => ("paused", Some(*cursor)),
+        State::TakenOver { cursor } => ("taken_over", Some(*cursor)),
+        State::Completed {} => ("completed", None),
+        State::Failed { cursor, .. } => ("failed", Some(*cursor)),
+        State::Aborted { cursor, .. } => ("aborted", Some(*cursor)),
+    }
+}

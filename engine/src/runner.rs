@@ -1,0 +1,250 @@
+//! The runner: drives the state machine with a [`Primitives`] implementation and a
+//! [`Supervisor`], performs the effects it asks for, and keeps the journal and a per-throw
+//! summary.
+
+use crate::journal::{Entry, Journal, RunOutcome};
+use crate::machine::{Ctx, Cursor, Effect, Event, Mission, State, state_label, state_parts};
+use crate::plan::Plan;
+use crate::supervisor::{InterventionRequest, Supervisor};
+use serde::Serialize;
+use statig::blocking::{InitializedStateMachine, IntoStateMachineExt};
+use std::sync::Arc;
+use stitch_primitives::{Primitives, StepOutcome, StepRequest};
+use stitch_robot::Clock;
+
+/// One step attempt as the runner saw it, for timelines.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Attempt {
+    /// Step index within the throw, 0-based.
+    pub step: usize,
+    /// Step name.
+    pub primitive: &'static str,
+    /// Attempt number, 0-based.
+    pub attempt: u32,
+    /// Simulated time when it started, s.
+    pub start_s: f64,
+    /// Simulated time it took, s.
+    pub duration_s: f64,
+    /// What happened.
+    pub outcome: StepOutcome,
+}
+
+/// What happened in one throw.
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct ThrowSummary {
+    /// Every step attempt, in order.
+    pub attempts: Vec<Attempt>,
+    /// Retries the machine granted in this throw.
+    pub retries: u32,
+    /// Interventions requested in this throw.
+    pub interventions: u32,
+    /// Whether every step of the throw succeeded.
+    pub completed: bool,
+}
+
+/// What a run produced.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Report {
+    /// How it ended.
+    pub outcome: RunOutcome,
+    /// One summary per throw of the plan.
+    pub throws: Vec<ThrowSummary>,
+    /// Interventions used.
+    pub interventions: u8,
+    /// Simulated time at the end, s.
+    pub duration_s: f64,
+    /// The journal.
+    pub journal: Journal,
+}
+
+/// Runs one plan.
+pub struct Runner<'a> {
+    machine: InitializedStateMachine<Mission>,
+    ctx: Ctx,
+    primitives: &'a mut dyn Primitives,
+    supervisor: &'a mut dyn Supervisor,
+    clock: Arc<dyn Clock>,
+    throws: Vec<ThrowSummary>,
+    attempts_started: usize,
+}
+
+impl std::fmt::Debug for Runner<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Runner").field("state", self.machine.state()).finish_non_exhaustive()
+    }
+}
+
+impl<'a> Runner<'a> {
+    /// A runner for `plan`. Validate the plan first ([`crate::load_plan`] does); the machine
+    /// enforces the hard caps either way. `seed` is recorded in the journal.
+    pub fn new(
+        plan: Arc<Plan>,
+        primitives: &'a mut dyn Primitives,
+        supervisor: &'a mut dyn Supervisor,
+        clock: Arc<dyn Clock>,
+        seed: Option<u64>,
+    ) -> Self {
+        let mut ctx = Ctx::default();
+        ctx.journal.set_now(clock.now());
+        ctx.journal.push(Entry::Plan {
+            name: plan.name.clone(),
+            file: plan.file.clone(),
+            throws: plan.throws.len(),
+            interventions: plan.interventions,
+            seed,
+        });
+        let throws = vec![ThrowSummary::default(); plan.throws.len()];
+        let machine = Mission::new(plan).uninitialized_state_machine().init_with_context(&mut ctx);
+        Self { machine, ctx, primitives, supervisor, clock, throws, attempts_started: 0 }
+    }
+
+    /// The machine's current state.
+    pub fn state(&self) -> &State {
+        self.machine.state()
+    }
+
+    fn dispatch(&mut self, event: Event) {
+        self.ctx.journal.set_now(self.clock.now());
+        self.machine.handle_with_context(&event, &mut self.ctx);
+        for effect in std::mem::take(&mut self.ctx.effects) {
+            match effect {
+                Effect::HoldArms => {
+                    let error = self.primitives.hold_all().err().map(|e| e.to_string());
+                    self.ctx.journal.set_now(self.clock.now());
+                    self.ctx.journal.push(Entry::Hold { state: state_label(self.machine.state()), error });
+                }
+            }
+        }
+    }
+
+    /// Run to the end: completed, failed or aborted.
+    pub fn run(mut self) -> Report {
+        self.dispatch(Event::Start);
+        loop {
+            let state = self.machine.state().clone();
+            let (name, cursor) = state_parts(&state);
+            match (&state, cursor) {
+                (State::Completed {} | State::Failed { .. } | State::Aborted { .. }, _) => break,
+                (State::Ready {}, _) => self.dispatch(Event::Start),
+                (State::Paused { .. } | State::TakenOver { .. }, _) => {
+                    let event = match self.supervisor.wait() {
+                        Some(command) => Event::Supervisor(command),
+                        None => Event::SupervisorLost,
+                    };
+                    self.dispatch(event);
+                }
+                (State::AwaitingIntervention { class, .. }, Some(c)) => {
+                    let request = InterventionRequest {
+                        throw: c.throw,
+                        step: c.step,
+                        primitive: self.step_name(c),
+                        class: *class,
+                    };
+                    if let Some(t) = self.throws.get_mut(c.throw) {
+                        t.interventions += 1;
+                    }
+                    let result = self.supervisor.intervene(&request);
+                    self.dispatch(Event::InterventionFinished(result));
+                }
+                (_, Some(c)) => {
+                    // A step state: the supervisor may speak before the attempt.
+                    if let Some(command) = self.supervisor.poll(self.attempts_started) {
+                        self.dispatch(Event::Supervisor(command));
+                        continue;
+                    }
+                    self.attempt(c);
+                }
+                (_, None) => unreachable_state(name),
+            }
+        }
+        self.finish()
+    }
+
+    fn step_name(&self, c: Cursor) -> &'static str {
+        self.machine.inner().plan().throws[c.throw].steps[c.step].kind.name()
+    }
+
+    fn attempt(&mut self, c: Cursor) {
+        let plan = Arc::clone(self.machine.inner().plan_arc());
+        let throw = &plan.throws[c.throw];
+        let step = &throw.steps[c.step];
+        let summary = &mut self.throws[c.throw];
+        let attempt = summary.attempts.iter().filter(|a| a.step == c.step).count() as u32;
+        if c.retries > 0 {
+            summary.retries += 1;
+        }
+        let start = self.clock.now();
+        self.ctx.journal.set_now(start);
+        self.ctx.journal.push(Entry::StepStart {
+            throw: c.throw,
+            step: c.step,
+            primitive: step.kind.name().into(),
+            attempt,
+        });
+        self.attempts_started += 1;
+        let outcome = self.primitives.run(&StepRequest {
+            throw: c.throw,
+            step: c.step,
+            point: &throw.point,
+            kind: &step.kind,
+            attempt,
+        });
+        let end = self.clock.now();
+        self.ctx.journal.set_now(end);
+        self.ctx.journal.push(Entry::StepEnd {
+            throw: c.throw,
+            step: c.step,
+            primitive: step.kind.name().into(),
+            attempt,
+            outcome: outcome.clone(),
+        });
+        let summary = &mut self.throws[c.throw];
+        summary.attempts.push(Attempt {
+            step: c.step,
+            primitive: step.kind.name(),
+            attempt,
+            start_s: start.as_secs_f64(),
+            duration_s: end.saturating_sub(start).as_secs_f64(),
+            outcome: outcome.clone(),
+        });
+        if matches!(outcome, StepOutcome::Succeeded { .. }) && c.step + 1 == throw.steps.len() {
+            summary.completed = true;
+        }
+        self.dispatch(Event::StepFinished(outcome));
+    }
+
+    fn finish(mut self) -> Report {
+        let mission = self.machine.inner();
+        let outcome = match self.machine.state() {
+            State::Completed {} => RunOutcome::Completed,
+            State::Failed { cursor, class } => RunOutcome::Failed {
+                class: *class,
+                throw: cursor.throw,
+                step: cursor.step,
+                primitive: mission.plan().throws[cursor.throw].steps[cursor.step].kind.name().into(),
+                reason: mission.last_failure().map(|f| f.kind.clone()),
+            },
+            State::Aborted { cursor, by } => {
+                RunOutcome::Aborted { by: *by, throw: cursor.throw, step: cursor.step }
+            }
+            other => unreachable_state(state_parts(other).0),
+        };
+        let interventions = mission.interventions_used();
+        self.ctx.journal.set_now(self.clock.now());
+        self.ctx.journal.push(Entry::Finished { outcome: outcome.clone() });
+        Report {
+            outcome,
+            throws: self.throws,
+            interventions,
+            duration_s: self.clock.now().as_secs_f64(),
+            journal: std::mem::take(&mut self.ctx.journal),
+        }
+    }
+}
+
+/// The loop only leaves terminal states, and every other state has a cursor: reaching this
+/// is a bug in the engine, not bad input.
+#[allow(clippy::panic)]
+fn unreachable_state(name: &str) -> ! {
+    panic!("engine bug: the runner cannot act in state `{name}`")
+}

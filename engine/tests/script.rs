@@ -1,0 +1,178 @@
+//! The Rhai host: plans load from scripts; bad scripts get one-line errors at their position;
+//! the sandbox stops runaway scripts.
+
+use std::time::{Duration, Instant};
+use stitch_engine::{PlanLoader, ScriptLimits, load_plan, load_plan_str};
+use stitch_primitives::StepKind;
+use stitch_robot::{Wound, WoundSpec};
+
+fn loader() -> PlanLoader {
+    PlanLoader::new(&Wound::linear(&WoundSpec::default()).expect("default wound"), ScriptLimits::default())
+}
+
+fn scripts() -> std::path::PathBuf {
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scripts")
+}
+
+/// The one error a script gets: `file:line:col: message`, on one line.
+fn error_of(source: &str) -> String {
+    let e = load_plan_str(&loader(), "plan.rhai", source).expect_err("the script is invalid");
+    let text = e.to_string();
+    assert_eq!(text.lines().count(), 1, "one line: {text}");
+    text
+}
+
+const GOOD_THROW: &str = "insert(), sweep(), extract(), cinch(), handover(), correct()";
+
+#[test]
+fn the_shipped_policies_load_and_validate() {
+    for (file, name, throws, steps, interventions) in [
+        ("stitch.rhai", "STITCH", 6, 6, 0),
+        ("stitch_human.rhai", "STITCH + Human", 6, 6, 2),
+        ("sensing_only.rhai", "Sensing Only", 6, 3, 0),
+        ("thread_handling.rhai", "Thread Handling", 6, 5, 0),
+    ] {
+        let loaded = load_plan(&loader(), &scripts().join(file)).unwrap_or_else(|e| panic!("{e}"));
+        let plan = loaded.plan;
+        assert_eq!(plan.name, name);
+        assert_eq!(plan.throws.len(), throws, "{file}");
+        assert!(plan.throws.iter().all(|t| t.steps.len() == steps), "{file}");
+        assert_eq!(plan.interventions, interventions, "{file}");
+        // One throw per wound point, in order.
+        for (i, t) in plan.throws.iter().enumerate() {
+            assert_eq!(t.point.index, i);
+        }
+    }
+}
+
+#[test]
+fn units_and_parameters_reach_the_plan_in_si() {
+    let src = "let t = suture(wound()[0], [insert(#{ rotation: deg(30), push: mm(3) }), \
+               extract(#{ retries: 2, offset: cm(1) + mm(5) }), handover()]);\n\
+               mission(#{ name: \"x\", throws: [t] })";
+    let plan = load_plan_str(&loader(), "p.rhai", src).expect("valid").plan;
+    let steps = &plan.throws[0].steps;
+    match (&steps[0].kind, &steps[1].kind) {
+        (StepKind::Insert(i), StepKind::Extract(e)) => {
+            assert!((i.rotation_rad - 30f64.to_radians()).abs() < 1e-12);
+            assert!((i.push_m - 0.003).abs() < 1e-12);
+            assert_eq!(e.retries, 2);
+            assert!((e.offset_m - 0.015).abs() < 1e-12);
+        }
+        other => panic!("unexpected steps {other:?}"),
+    }
+    // Positions are the calls' own.
+    assert_eq!((steps[0].pos.line, steps[1].pos.line), (1, 1));
+    assert!(steps[1].pos.col > steps[0].pos.col);
+}
+
+#[test]
+fn a_syntax_error_names_its_position() {
+    let e = error_of("let x = ;\nmission(#{ throws: [] })");
+    assert!(e.starts_with("plan.rhai:1:9: syntax error"), "{e}");
+}
+
+#[test]
+fn an_unknown_primitive_names_its_position_and_the_known_ones() {
+    let e = error_of(&format!(
+        "let t = suture(wound()[0], [\n    insert(),\n    stab(),\n    {GOOD_THROW}]);\nmission(#{{ throws: [t] }})"
+    ));
+    assert!(e.starts_with("plan.rhai:3:5: unknown function or primitive `stab`"), "{e}");
+    assert!(e.contains("insert, sweep, extract"), "{e}");
+}
+
+#[test]
+fn a_wrong_unit_names_the_parameter_and_the_expected_unit() {
+    let e = error_of("let t = suture(wound()[0], [insert(), sweep(#{ distance: deg(5) })]);");
+    assert!(
+        e.starts_with("plan.rhai:1:39: sweep: `distance` must be a length, written mm(..), cm(..) or m(..), found an angle (5°)"),
+        "{e}"
+    );
+    let e = error_of("let s = insert(#{ push: 4 });");
+    assert!(e.contains("`push` must be a length") && e.contains("found a bare number 4"), "{e}");
+    let e = error_of("let s = extract(#{ retries: 2.5 });");
+    assert!(e.starts_with("plan.rhai:1:9: extract: `retries` must be a whole number, found 2.5"), "{e}");
+}
+
+#[test]
+fn extract_with_nine_retries_is_refused_at_its_call() {
+    let e = error_of(
+        "let t = suture(wound()[0], [insert(), sweep(),\n  extract(#{ retries: 9 }), handover()]);\nmission(#{ name: \"x\", throws: [t] })",
+    );
+    assert!(
+        e.starts_with("plan.rhai:2:3: throw 1: extract: retries 9 exceeds the engine's hard cap of 5"),
+        "{e}"
+    );
+}
+
+#[test]
+fn handover_before_extract_is_refused_at_the_handover() {
+    let e = error_of(
+        "let t = suture(wound()[0], [\n  insert(),\n  handover(),\n  extract()]);\nmission(#{ name: \"x\", throws: [t] })",
+    );
+    assert!(e.starts_with("plan.rhai:3:3: throw 1: handover needs the needle in the left jaw"), "{e}");
+}
+
+#[test]
+fn the_script_must_return_a_mission() {
+    let e = error_of("let x = 1;\nx");
+    assert!(e.starts_with("plan.rhai:2:1: the script must end with a mission"), "{e}");
+    assert!(e.ends_with("it returned an integer"), "{e}");
+}
+
+#[test]
+fn errors_in_script_functions_point_inside_the_function() {
+    let e = error_of("fn bad() {\n  insert(#{ spin: deg(3) })\n}\nlet s = bad();");
+    assert!(e.starts_with("plan.rhai:2:3: insert: unknown parameter `spin`; expected rotation, push"), "{e}");
+    assert!(e.contains("(in `bad` called at 4:9)"), "{e}");
+}
+
+#[test]
+fn undefined_variables_are_refused_before_running() {
+    let e = error_of("let t = suture(wound()[0], [insert()]);\nmission(#{ name: \"x\", throws: [t, u] })");
+    assert!(e.starts_with("plan.rhai:2:35: syntax error: Undefined variable: u"), "{e}");
+}
+
+#[test]
+fn an_endless_loop_is_stopped_within_a_second() {
+    let t0 = Instant::now();
+    let e = error_of("let i = 0;\nloop { i += 1; }");
+    assert!(t0.elapsed() < Duration::from_secs(1), "took {:?}", t0.elapsed());
+    assert!(e.contains("stopped by the sandbox: too many operations"), "{e}");
+}
+
+#[test]
+fn a_deep_recursion_is_stopped_within_a_second() {
+    let t0 = Instant::now();
+    let e = error_of("fn down(n) { down(n + 1) }\ndown(0)");
+    assert!(t0.elapsed() < Duration::from_secs(1), "took {:?}", t0.elapsed());
+    assert!(e.contains("stopped by the sandbox: calls nested too deeply"), "{e}");
+}
+
+#[test]
+fn the_deadline_stops_a_script_that_stays_under_the_operation_limit() {
+    let limits = ScriptLimits {
+        max_operations: 0, // unlimited: only the deadline can stop it
+        deadline: Duration::from_millis(100),
+        ..ScriptLimits::default()
+    };
+    let loader = PlanLoader::new(&Wound::linear(&WoundSpec::default()).expect("wound"), limits);
+    let t0 = Instant::now();
+    let e = load_plan_str(&loader, "plan.rhai", "let i = 0;\nwhile true { i += 1; }").expect_err("stopped");
+    assert!(t0.elapsed() < Duration::from_secs(1), "took {:?}", t0.elapsed());
+    assert!(e.to_string().contains("ran past the sandbox deadline of 100 ms"), "{e}");
+}
+
+#[test]
+fn the_sandbox_offers_no_eval_and_no_sleep() {
+    let e = error_of("eval(\"1\")");
+    assert!(e.contains("eval"), "{e}");
+    let e = error_of("sleep(10)");
+    assert!(e.contains("unknown function or primitive `sleep`"), "{e}");
+}
+
+#[test]
+fn oversized_arrays_are_stopped() {
+    let e = error_of("let a = [];\nfor i in 0..5000 { a.push(i); }");
+    assert!(e.contains("stopped by the sandbox"), "{e}");
+}
