@@ -2,12 +2,17 @@
 //! scripted run that keeps everything the tests inspect.
 
 use proptest::prelude::*;
+use std::cell::Cell;
+use std::rc::Rc;
 use std::sync::Arc;
 use stitch_engine::{
-    InterventionResult, Plan, Report, Runner, ScriptedSupervisor, SourcePos, Step,
-    SupervisorCommand, Throw, TimedCommand,
+    InterventionRequest, InterventionResult, Plan, Report, Runner, ScriptedSupervisor, SourcePos,
+    Step, Supervisor, SupervisorCommand, Throw, TimedCommand,
 };
-use stitch_primitives::{Scripted, ScriptedPrimitives, StepKind, Value};
+use stitch_primitives::{
+    PrimitiveError, Primitives, Scripted, ScriptedPrimitives, StepKind, StepOutcome, StepRequest,
+    Value,
+};
 use stitch_robot::{SimClock, Wound, WoundSpec};
 
 /// Step names of the paper's policies and a few perception-laden variants; each ends with the
@@ -47,7 +52,10 @@ pub struct Budgets {
 /// A plan of `templates` (indices into [`TEMPLATES`]), one throw each, with these budgets.
 /// Built in Rust, not validated: budgets above the caps reach the machine as they are.
 pub fn plan_from(templates: &[usize], budgets: Budgets) -> Plan {
-    let spec = WoundSpec { count: templates.len().max(1), ..WoundSpec::default() };
+    let spec = WoundSpec {
+        count: templates.len().max(1),
+        ..WoundSpec::default()
+    };
     let wound = Wound::linear(&spec).expect("a valid wound spec");
     let throws = templates
         .iter()
@@ -67,9 +75,13 @@ pub fn plan_from(templates: &[usize], budgets: Budgets) -> Plan {
                         _ => None,
                     };
                     if let Some(r) = retries {
-                        kind.set("retries", Value::Count(i64::from(r))).expect("retries");
+                        kind.set("retries", Value::Count(i64::from(r)))
+                            .expect("retries");
                     }
-                    Step { kind, pos: SourcePos::default() }
+                    Step {
+                        kind,
+                        pos: SourcePos::default(),
+                    }
                 })
                 .collect(),
             pos: SourcePos::default(),
@@ -97,12 +109,17 @@ pub struct Run {
     pub supervisor: ScriptedSupervisor,
     /// The intervention results the schedule gave, in order.
     pub intervention_results: Vec<InterventionResult>,
+    /// For each intervention request, how many step attempts the primitives had seen.
+    pub intervention_after_calls: Vec<usize>,
 }
 
 impl Run {
     /// The result the n-th intervention request got.
     pub fn intervention_result(&self, n: usize) -> InterventionResult {
-        self.intervention_results.get(n).copied().unwrap_or(InterventionResult::Recovered)
+        self.intervention_results
+            .get(n)
+            .copied()
+            .unwrap_or(InterventionResult::Recovered)
     }
 }
 
@@ -115,12 +132,69 @@ pub fn run_scripted(
 ) -> Run {
     let clock = SimClock::new();
     let plan = Arc::new(plan);
-    let mut primitives = ScriptedPrimitives::from_schedule(outcomes, clock.clone());
-    let mut supervisor = ScriptedSupervisor::new(commands, interventions.clone());
-    let report =
-        Runner::new(Arc::clone(&plan), &mut primitives, &mut supervisor, Arc::new(clock), None)
-            .run();
-    Run { plan, report, primitives, supervisor, intervention_results: interventions }
+    let calls = Rc::new(Cell::new(0));
+    let mut primitives = Counted {
+        inner: ScriptedPrimitives::from_schedule(outcomes, clock.clone()),
+        calls: Rc::clone(&calls),
+    };
+    let mut supervisor = Noted {
+        inner: ScriptedSupervisor::new(commands, interventions.clone()),
+        calls,
+        at: Vec::new(),
+    };
+    let report = Runner::new(
+        Arc::clone(&plan),
+        &mut primitives,
+        &mut supervisor,
+        Arc::new(clock),
+        None,
+    )
+    .run();
+    Run {
+        plan,
+        report,
+        primitives: primitives.inner,
+        supervisor: supervisor.inner,
+        intervention_results: interventions,
+        intervention_after_calls: supervisor.at,
+    }
+}
+
+/// Counts the step attempts the engine asks for, so the supervisor wrapper can note when an
+/// intervention came relative to them.
+struct Counted {
+    inner: ScriptedPrimitives,
+    calls: Rc<Cell<usize>>,
+}
+
+impl Primitives for Counted {
+    fn run(&mut self, req: &StepRequest<'_>) -> StepOutcome {
+        self.calls.set(self.calls.get() + 1);
+        self.inner.run(req)
+    }
+    fn hold_all(&mut self) -> Result<(), PrimitiveError> {
+        self.inner.hold_all()
+    }
+}
+
+/// Notes, for each intervention, how many attempts had been made before it.
+struct Noted {
+    inner: ScriptedSupervisor,
+    calls: Rc<Cell<usize>>,
+    at: Vec<usize>,
+}
+
+impl Supervisor for Noted {
+    fn poll(&mut self, attempts: usize) -> Option<SupervisorCommand> {
+        self.inner.poll(attempts)
+    }
+    fn wait(&mut self) -> Option<SupervisorCommand> {
+        self.inner.wait()
+    }
+    fn intervene(&mut self, request: &InterventionRequest) -> InterventionResult {
+        self.at.push(self.calls.get());
+        self.inner.intervene(request)
+    }
 }
 
 /// Outcome tokens, weighted so that retries get exhausted and every failure kind appears.
@@ -138,11 +212,19 @@ pub fn token() -> impl Strategy<Value = Scripted> {
 
 /// Supervisor commands at increasing attempt counts.
 pub fn commands(max: usize) -> impl Strategy<Value = Vec<TimedCommand>> {
-    prop::collection::vec((0usize..60, prop::sample::select(SupervisorCommand::ALL.to_vec())), 0..=max)
-        .prop_map(|mut v| {
-            v.sort_by_key(|(at, _)| *at);
-            v.into_iter().map(|(at, command)| TimedCommand { at, command }).collect()
-        })
+    prop::collection::vec(
+        (
+            0usize..60,
+            prop::sample::select(SupervisorCommand::ALL.to_vec()),
+        ),
+        0..=max,
+    )
+    .prop_map(|mut v| {
+        v.sort_by_key(|(at, _)| *at);
+        v.into_iter()
+            .map(|(at, command)| TimedCommand { at, command })
+            .collect()
+    })
 }
 
 /// Intervention results.
@@ -162,12 +244,25 @@ pub fn plans() -> impl Strategy<Value = Plan> {
         0u8..=9,
         0u8..=4,
     )
-        .prop_map(|(templates, extract, handover, perception, interventions)| {
-            plan_from(&templates, Budgets { extract, handover, perception, interventions })
-        })
+        .prop_map(
+            |(templates, extract, handover, perception, interventions)| {
+                plan_from(
+                    &templates,
+                    Budgets {
+                        extract,
+                        handover,
+                        perception,
+                        interventions,
+                    },
+                )
+            },
+        )
 }
 
 /// Cases per property: `STITCH_PROPTEST_CASES` if set, else `default`.
 pub fn cases(default: u32) -> u32 {
-    std::env::var("STITCH_PROPTEST_CASES").ok().and_then(|v| v.parse().ok()).unwrap_or(default)
+    std::env::var("STITCH_PROPTEST_CASES")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(default)
 }

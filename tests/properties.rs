@@ -1,41 +1,51 @@
 //! Properties of the engine for arbitrary plans (budgets up to beyond the caps) and arbitrary
-//! outcome schedules. Each property runs `STITCH_PROPTEST_CASES` cases (default 2,000; six
-//! properties make 12,000 cases per `cargo test`).
+//! outcome schedules. Each property runs `STITCH_PROPTEST_CASES` cases (default 4,000; six
+//! properties make 24,000 cases per `cargo test`).
 //!
 //! Counts are taken from what the scripted primitives and supervisor saw, not from the
 //! engine's own bookkeeping, so a bug in the engine's counters cannot hide itself.
 
 use proptest::prelude::*;
 use std::collections::BTreeMap;
-use stitch_engine::{AbortCause, Entry, FailureClass, InterventionResult, Plan, RunOutcome, SupervisorCommand};
+use stitch_engine::{
+    AbortCause, Entry, FailureClass, InterventionResult, Plan, RunOutcome, SupervisorCommand,
+};
 use stitch_primitives::{Scripted, StepKind};
 use stitch_tests::{Run, cases, commands, interventions, plans, run_scripted, token};
 
-const DEFAULT_CASES: u32 = 2_000;
+const DEFAULT_CASES: u32 = 4_000;
 
 fn config() -> ProptestConfig {
-    ProptestConfig { cases: cases(DEFAULT_CASES), ..ProptestConfig::default() }
+    ProptestConfig {
+        cases: cases(DEFAULT_CASES),
+        ..ProptestConfig::default()
+    }
 }
 
 /// Retries of each step of kind `pick`, as the primitives saw them: attempts at the step, less
-/// the first, less one re-run for each intervention on it that recovered.
+/// the first, less each re-run that followed a recovered intervention on it (an intervention
+/// whose re-run never came, because the run was aborted first, re-ran nothing).
 fn retries_seen(run: &Run, pick: fn(&StepKind) -> bool) -> Vec<((usize, usize), usize)> {
+    let calls = &run.primitives.calls;
     let mut attempts: BTreeMap<(usize, usize), usize> = BTreeMap::new();
-    for c in &run.primitives.calls {
-        let kind = &run.plan.throws[c.throw].steps[c.step].kind;
-        if pick(kind) {
+    for c in calls {
+        if pick(&run.plan.throws[c.throw].steps[c.step].kind) {
             *attempts.entry((c.throw, c.step)).or_default() += 1;
         }
     }
-    let mut recovered: BTreeMap<(usize, usize), usize> = BTreeMap::new();
+    let mut reruns: BTreeMap<(usize, usize), usize> = BTreeMap::new();
     for (n, r) in run.supervisor.requests.iter().enumerate() {
-        if run.intervention_result(n) == InterventionResult::Recovered {
-            *recovered.entry((r.throw, r.step)).or_default() += 1;
+        let after = run.intervention_after_calls[n];
+        let rerun = calls
+            .get(after)
+            .is_some_and(|c| (c.throw, c.step) == (r.throw, r.step));
+        if run.intervention_result(n) == InterventionResult::Recovered && rerun {
+            *reruns.entry((r.throw, r.step)).or_default() += 1;
         }
     }
     attempts
         .into_iter()
-        .map(|(k, n)| (k, n - 1 - recovered.get(&k).copied().unwrap_or(0)))
+        .map(|(k, n)| (k, n - 1 - reruns.get(&k).copied().unwrap_or(0)))
         .collect()
 }
 

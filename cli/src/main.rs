@@ -114,13 +114,25 @@ fn main() -> ExitCode {
 fn run(cli: Cli) -> anyhow::Result<u8> {
     match cli.command {
         Command::Check { plan, wound } => {
-            let Some(loaded) = load(&plan, &wound)? else { return Ok(exit::INVALID_PLAN) };
+            let Some(loaded) = load(&plan, &wound)? else {
+                return Ok(exit::INVALID_PLAN);
+            };
             print!("{}", show::plan_tree(&loaded.plan));
             println!("valid: {} throws, nothing ran", loaded.plan.throws.len());
             Ok(exit::OK)
         }
-        Command::Run { plan, seed, robot, journal, outcomes, json, wound } => {
-            let Some(loaded) = load(&plan, &wound)? else { return Ok(exit::INVALID_PLAN) };
+        Command::Run {
+            plan,
+            seed,
+            robot,
+            journal,
+            outcomes,
+            json,
+            wound,
+        } => {
+            let Some(loaded) = load(&plan, &wound)? else {
+                return Ok(exit::INVALID_PLAN);
+            };
             let report = match robot {
                 RobotKind::Scripted => run_scripted(&loaded, seed, outcomes.as_deref())?,
             };
@@ -137,7 +149,11 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
                 serde_json::to_writer_pretty(&mut out, &report.outcome)?;
                 writeln!(out)?;
             } else {
-                write!(out, "{}", show::timeline(&loaded.plan, &report, seed, robot_name(robot)))?;
+                write!(
+                    out,
+                    "{}",
+                    show::timeline(&loaded.plan, &report, seed, robot_name(robot))
+                )?;
             }
             Ok(match report.outcome {
                 RunOutcome::Completed => exit::OK,
@@ -191,5 +207,12 @@ fn run_scripted(loaded: &Loaded, seed: u64, outcomes: Option<&Path>) -> anyhow::
         ),
     };
     let seed = outcomes.is_none().then_some(seed);
-    Ok(Runner::new(plan, &mut primitives, &mut supervisor, Arc::new(clock), seed).run())
+    Ok(Runner::new(
+        plan,
+        &mut primitives,
+        &mut supervisor,
+        Arc::new(clock),
+        seed,
+    )
+    .run())
 }

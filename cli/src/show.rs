@@ -1,7 +1,7 @@
 //! Text views of plans and runs.
 
 use std::fmt::Write;
-use stitch_engine::{Plan, Report, RunOutcome, caps, retry_cap};
+use stitch_engine::{InterventionResult, Plan, Report, RunOutcome, caps, retry_cap};
 use stitch_primitives::{StepOutcome, Value};
 
 fn mm(p: &stitch_robot::Point) -> String {
@@ -127,15 +127,31 @@ pub fn timeline(plan: &Plan, report: &Report, seed: u64, robot: &str) -> String 
                 a.duration_s,
                 outcome_text(&a.outcome)
             );
+            if let Some(result) = a.intervention {
+                let how = match result {
+                    InterventionResult::Recovered => "recovered; the step runs again",
+                    InterventionResult::Failed => "failed",
+                };
+                let _ = writeln!(s, "  {:>9}  human intervention: {how}", "");
+            }
         }
     }
     let done = report.throws.iter().filter(|t| t.completed).count();
     let outcome = match &report.outcome {
         RunOutcome::Completed => "completed".to_string(),
-        RunOutcome::Failed { class, throw, primitive, reason, .. } => format!(
+        RunOutcome::Failed {
+            class,
+            throw,
+            primitive,
+            reason,
+            ..
+        } => format!(
             "failed, class {class}, in throw {} at {primitive}{}",
             throw + 1,
-            reason.as_ref().map(|r| format!(": {}", r.label())).unwrap_or_default()
+            reason
+                .as_ref()
+                .map(|r| format!(": {}", r.label()))
+                .unwrap_or_default()
         ),
         RunOutcome::Aborted { by, throw, step } => format!(
             "aborted ({by:?}) before throw {} step {}; arms held",

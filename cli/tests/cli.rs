@@ -48,7 +48,11 @@ fn the_same_seed_writes_the_same_journal_and_another_seed_does_not() {
             "--journal",
             path.to_str().expect("utf-8 path"),
         ]);
-        assert!(matches!(out.status.code(), Some(0 | 4)), "{}", text(&out.stderr));
+        assert!(
+            matches!(out.status.code(), Some(0 | 4)),
+            "{}",
+            text(&out.stderr)
+        );
     }
     let (a, b, c) = (
         std::fs::read(a).expect("a"),
@@ -64,7 +68,10 @@ fn the_same_seed_writes_the_same_journal_and_another_seed_does_not() {
 fn run_prints_a_timeline_and_the_outcome() {
     let out = stitch(&["run", "scripts/stitch_human.rhai", "--seed", "3"]);
     let s = text(&out.stdout);
-    assert!(s.starts_with("STITCH + Human on the scripted robot, seed 3"), "{s}");
+    assert!(
+        s.starts_with("STITCH + Human on the scripted robot, seed 3"),
+        "{s}"
+    );
     assert!(s.contains("throw 1 ("), "{s}");
     assert!(s.contains("outcome: "), "{s}");
     let code = out.status.code();
@@ -135,8 +142,17 @@ fn a_replayed_schedule_reproduces_its_outcome() {
 #[test]
 fn an_e_stop_in_a_schedule_exits_five() {
     let schedule = tmp("estop.json");
-    std::fs::write(&schedule, r#"{"supervisor": [{"at": 2, "command": "e-stop"}]}"#).expect("write");
-    let out = stitch(&["run", "scripts/stitch.rhai", "--outcomes", schedule.to_str().expect("utf-8")]);
+    std::fs::write(
+        &schedule,
+        r#"{"supervisor": [{"at": 2, "command": "e-stop"}]}"#,
+    )
+    .expect("write");
+    let out = stitch(&[
+        "run",
+        "scripts/stitch.rhai",
+        "--outcomes",
+        schedule.to_str().expect("utf-8"),
+    ]);
     assert_eq!(out.status.code(), Some(5), "{}", text(&out.stdout));
     assert!(text(&out.stdout).contains("arms held"));
 }
@@ -145,5 +161,9 @@ fn an_e_stop_in_a_schedule_exits_five() {
 fn a_missing_plan_file_exits_one_with_the_reason() {
     let out = stitch(&["check", "scripts/no_such_plan.rhai"]);
     assert_eq!(out.status.code(), Some(1));
-    assert!(text(&out.stderr).contains("cannot read the plan"), "{}", text(&out.stderr));
+    assert!(
+        text(&out.stderr).contains("cannot read the plan"),
+        "{}",
+        text(&out.stderr)
+    );
 }

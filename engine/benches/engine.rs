@@ -20,9 +20,15 @@ fn benches(c: &mut Criterion) {
         b.iter(|| load_plan_str(&loader, "stitch.rhai", black_box(&source)).expect("valid"))
     });
 
-    let plan = Arc::new(load_plan_str(&loader, "stitch.rhai", &source).expect("valid").plan);
+    let plan = Arc::new(
+        load_plan_str(&loader, "stitch.rhai", &source)
+            .expect("valid")
+            .plan,
+    );
     let mut ctx = Ctx::default();
-    let mut machine = Mission::new(plan).uninitialized_state_machine().init_with_context(&mut ctx);
+    let mut machine = Mission::new(plan)
+        .uninitialized_state_machine()
+        .init_with_context(&mut ctx);
     machine.handle_with_context(&Event::Start, &mut ctx); // now in `inserting`
     let success = Event::StepFinished(StepOutcome::ok());
     c.bench_function("dispatch_step_success", |b| {

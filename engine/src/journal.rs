@@ -191,7 +191,11 @@ impl Journal {
     /// Append an entry at the current time.
     pub fn push(&mut self, entry: Entry) {
         let seq = self.records.len() as u64;
-        self.records.push(Record { seq, t_s: self.now.as_secs_f64(), entry });
+        self.records.push(Record {
+            seq,
+            t_s: self.now.as_secs_f64(),
+            entry,
+        });
     }
 
     /// All records, in order.

@@ -10,8 +10,12 @@ mod supervisor;
 mod validate;
 
 pub use journal::{AbortCause, Entry, Journal, Record, RunOutcome};
-pub use machine::{Ctx, Cursor, Effect, Event, Mission, State, recovery_condition, state_label, state_parts};
-pub use plan::{FailureClass, NeedleHolder, Plan, PlanError, PlanErrors, SourcePos, Step, Throw, caps};
+pub use machine::{
+    Ctx, Cursor, Effect, Event, Mission, State, recovery_condition, state_label, state_parts,
+};
+pub use plan::{
+    FailureClass, NeedleHolder, Plan, PlanError, PlanErrors, SourcePos, Step, Throw, caps,
+};
 pub use runner::{Attempt, Report, Runner, ThrowSummary};
 pub use schedule::{OutcomeSchedule, ScheduleError};
 pub use script::{API, Angle, Length, Loaded, PlanLoader, ScriptLimits};

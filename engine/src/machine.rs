@@ -78,7 +78,11 @@ impl Mission {
     /// A mission for `plan`, ready to start. The plan should have been validated; the machine
     /// enforces the hard caps even if it was not.
     pub fn new(plan: Arc<Plan>) -> Self {
-        Self { plan, interventions_used: 0, last_failure: None }
+        Self {
+            plan,
+            interventions_used: 0,
+            last_failure: None,
+        }
     }
 
     /// The plan.
@@ -107,7 +111,12 @@ impl Mission {
     }
 
     fn kind(&self, c: Cursor) -> Option<&StepKind> {
-        self.plan.throws.get(c.throw)?.steps.get(c.step).map(|s| &s.kind)
+        self.plan
+            .throws
+            .get(c.throw)?
+            .steps
+            .get(c.step)
+            .map(|s| &s.kind)
     }
 
     /// The state that attempts the step at `c`, or `completed` past the last step.
@@ -128,9 +137,17 @@ impl Mission {
     fn next_state(&self, c: Cursor) -> State {
         let steps = self.plan.throws.get(c.throw).map_or(0, |t| t.steps.len());
         let next = if c.step + 1 < steps {
-            Cursor { throw: c.throw, step: c.step + 1, retries: 0 }
+            Cursor {
+                throw: c.throw,
+                step: c.step + 1,
+                retries: 0,
+            }
         } else {
-            Cursor { throw: c.throw + 1, step: 0, retries: 0 }
+            Cursor {
+                throw: c.throw + 1,
+                step: 0,
+                retries: 0,
+            }
         };
         if next.throw >= self.plan.throws.len() {
             State::completed()
@@ -156,7 +173,9 @@ impl Mission {
     }
 
     fn on_step_outcome(&mut self, c: Cursor, ctx: &mut Ctx, event: &Event) -> Outcome<State> {
-        let Event::StepFinished(outcome) = event else { return Super };
+        let Event::StepFinished(outcome) = event else {
+            return Super;
+        };
         let failure = match outcome {
             StepOutcome::Succeeded { .. } => return Transition(self.next_state(c)),
             StepOutcome::Failed(f) => f,
@@ -208,19 +227,24 @@ pub fn recovery_condition(kind: &StepKind, failure: &Failure) -> bool {
                 | StepKind::TrackThread(_)
         ),
         _ => match kind {
-            StepKind::Extract(p) => {
-                failure.measured.endpoint_travel_m.is_some_and(|t| t < p.min_travel_m)
-            }
-            StepKind::Handover(p) => {
-                failure.measured.normal_change_rad.is_some_and(|d| d <= p.normal_tolerance_rad)
-            }
+            StepKind::Extract(p) => failure
+                .measured
+                .endpoint_travel_m
+                .is_some_and(|t| t < p.min_travel_m),
+            StepKind::Handover(p) => failure
+                .measured
+                .normal_change_rad
+                .is_some_and(|d| d <= p.normal_tolerance_rad),
             _ => false,
         },
     }
 }
 
 fn supervisor_ignored(ctx: &mut Ctx, command: SupervisorCommand) -> Outcome<State> {
-    ctx.journal.push(Entry::Supervisor { command, acted: false });
+    ctx.journal.push(Entry::Supervisor {
+        command,
+        acted: false,
+    });
     Handled
 }
 
@@ -238,8 +262,15 @@ impl Mission {
             Event::Start if self.plan.throws.is_empty() => Transition(State::completed()),
             Event::Start => Transition(self.step_state(Cursor::default())),
             Event::Supervisor(c @ (SupervisorCommand::Abort | SupervisorCommand::EStop)) => {
-                context.journal.push(Entry::Supervisor { command: *c, acted: true });
-                let by = if *c == SupervisorCommand::EStop { AbortCause::EStop } else { AbortCause::Abort };
+                context.journal.push(Entry::Supervisor {
+                    command: *c,
+                    acted: true,
+                });
+                let by = if *c == SupervisorCommand::EStop {
+                    AbortCause::EStop
+                } else {
+                    AbortCause::Abort
+                };
                 Transition(State::aborted(Cursor::default(), by))
             }
             Event::Supervisor(c) => supervisor_ignored(context, *c),
@@ -249,43 +280,78 @@ impl Mission {
 
     /// Needle insertion (right PSM).
     #[state(superstate = "throw")]
-    fn inserting(&mut self, cursor: &mut Cursor, context: &mut Ctx, event: &Event) -> Outcome<State> {
+    fn inserting(
+        &mut self,
+        cursor: &mut Cursor,
+        context: &mut Ctx,
+        event: &Event,
+    ) -> Outcome<State> {
         self.on_step_outcome(*cursor, context, event)
     }
 
     /// Thread sweeping (right PSM, jaw open).
     #[state(superstate = "throw")]
-    fn sweeping(&mut self, cursor: &mut Cursor, context: &mut Ctx, event: &Event) -> Outcome<State> {
+    fn sweeping(
+        &mut self,
+        cursor: &mut Cursor,
+        context: &mut Ctx,
+        event: &Event,
+    ) -> Outcome<State> {
         self.on_step_outcome(*cursor, context, event)
     }
 
     /// Needle extraction (left PSM).
     #[state(superstate = "throw")]
-    fn extracting(&mut self, cursor: &mut Cursor, context: &mut Ctx, event: &Event) -> Outcome<State> {
+    fn extracting(
+        &mut self,
+        cursor: &mut Cursor,
+        context: &mut Ctx,
+        event: &Event,
+    ) -> Outcome<State> {
         self.on_step_outcome(*cursor, context, event)
     }
 
     /// Suture cinching (left PSM).
     #[state(superstate = "throw")]
-    fn cinching(&mut self, cursor: &mut Cursor, context: &mut Ctx, event: &Event) -> Outcome<State> {
+    fn cinching(
+        &mut self,
+        cursor: &mut Cursor,
+        context: &mut Ctx,
+        event: &Event,
+    ) -> Outcome<State> {
         self.on_step_outcome(*cursor, context, event)
     }
 
     /// Needle handover (left → right).
     #[state(superstate = "throw")]
-    fn handing_over(&mut self, cursor: &mut Cursor, context: &mut Ctx, event: &Event) -> Outcome<State> {
+    fn handing_over(
+        &mut self,
+        cursor: &mut Cursor,
+        context: &mut Ctx,
+        event: &Event,
+    ) -> Outcome<State> {
         self.on_step_outcome(*cursor, context, event)
     }
 
     /// Needle pose correction (right PSM).
     #[state(superstate = "throw")]
-    fn correcting(&mut self, cursor: &mut Cursor, context: &mut Ctx, event: &Event) -> Outcome<State> {
+    fn correcting(
+        &mut self,
+        cursor: &mut Cursor,
+        context: &mut Ctx,
+        event: &Event,
+    ) -> Outcome<State> {
         self.on_step_outcome(*cursor, context, event)
     }
 
     /// A perception query (needle pose or thread).
     #[state(superstate = "throw")]
-    fn perceiving(&mut self, cursor: &mut Cursor, context: &mut Ctx, event: &Event) -> Outcome<State> {
+    fn perceiving(
+        &mut self,
+        cursor: &mut Cursor,
+        context: &mut Ctx,
+        event: &Event,
+    ) -> Outcome<State> {
         self.on_step_outcome(*cursor, context, event)
     }
 
@@ -326,11 +392,17 @@ impl Mission {
     fn throw(cursor: &mut Cursor, context: &mut Ctx, event: &Event) -> Outcome<State> {
         match event {
             Event::Supervisor(SupervisorCommand::Pause) => {
-                context.journal.push(Entry::Supervisor { command: SupervisorCommand::Pause, acted: true });
+                context.journal.push(Entry::Supervisor {
+                    command: SupervisorCommand::Pause,
+                    acted: true,
+                });
                 Transition(State::paused(*cursor))
             }
             Event::Supervisor(SupervisorCommand::TakeOver) => {
-                context.journal.push(Entry::Supervisor { command: SupervisorCommand::TakeOver, acted: true });
+                context.journal.push(Entry::Supervisor {
+                    command: SupervisorCommand::TakeOver,
+                    acted: true,
+                });
                 Transition(State::taken_over(*cursor))
             }
             Event::Supervisor(c @ (SupervisorCommand::Resume | SupervisorCommand::HandBack)) => {
@@ -352,11 +424,17 @@ impl Mission {
     fn paused(&mut self, cursor: &mut Cursor, context: &mut Ctx, event: &Event) -> Outcome<State> {
         match event {
             Event::Supervisor(SupervisorCommand::Resume) => {
-                context.journal.push(Entry::Supervisor { command: SupervisorCommand::Resume, acted: true });
+                context.journal.push(Entry::Supervisor {
+                    command: SupervisorCommand::Resume,
+                    acted: true,
+                });
                 Transition(self.step_state(*cursor))
             }
             Event::Supervisor(SupervisorCommand::TakeOver) => {
-                context.journal.push(Entry::Supervisor { command: SupervisorCommand::TakeOver, acted: true });
+                context.journal.push(Entry::Supervisor {
+                    command: SupervisorCommand::TakeOver,
+                    acted: true,
+                });
                 Transition(State::taken_over(*cursor))
             }
             Event::Supervisor(c @ (SupervisorCommand::Pause | SupervisorCommand::HandBack)) => {
@@ -368,14 +446,24 @@ impl Mission {
 
     /// The surgeon teleoperates; the engine commands nothing.
     #[state(superstate = "supervised", entry_action = "hold_arms")]
-    fn taken_over(&mut self, cursor: &mut Cursor, context: &mut Ctx, event: &Event) -> Outcome<State> {
+    fn taken_over(
+        &mut self,
+        cursor: &mut Cursor,
+        context: &mut Ctx,
+        event: &Event,
+    ) -> Outcome<State> {
         match event {
             Event::Supervisor(SupervisorCommand::HandBack) => {
-                context.journal.push(Entry::Supervisor { command: SupervisorCommand::HandBack, acted: true });
+                context.journal.push(Entry::Supervisor {
+                    command: SupervisorCommand::HandBack,
+                    acted: true,
+                });
                 Transition(self.step_state(*cursor))
             }
             Event::Supervisor(
-                c @ (SupervisorCommand::Pause | SupervisorCommand::Resume | SupervisorCommand::TakeOver),
+                c @ (SupervisorCommand::Pause
+                | SupervisorCommand::Resume
+                | SupervisorCommand::TakeOver),
             ) => supervisor_ignored(context, *c),
             _ => Super,
         }
@@ -386,12 +474,21 @@ impl Mission {
     fn supervised(cursor: &mut Cursor, context: &mut Ctx, event: &Event) -> Outcome<State> {
         match event {
             Event::Supervisor(c @ (SupervisorCommand::Abort | SupervisorCommand::EStop)) => {
-                context.journal.push(Entry::Supervisor { command: *c, acted: true });
-                let by = if *c == SupervisorCommand::EStop { AbortCause::EStop } else { AbortCause::Abort };
+                context.journal.push(Entry::Supervisor {
+                    command: *c,
+                    acted: true,
+                });
+                let by = if *c == SupervisorCommand::EStop {
+                    AbortCause::EStop
+                } else {
+                    AbortCause::Abort
+                };
                 Transition(State::aborted(*cursor, by))
             }
             Event::Supervisor(c) => supervisor_ignored(context, *c),
-            Event::SupervisorLost => Transition(State::aborted(*cursor, AbortCause::SupervisorSilent)),
+            Event::SupervisorLost => {
+                Transition(State::aborted(*cursor, AbortCause::SupervisorSilent))
+            }
             _ => Handled,
         }
     }
@@ -425,7 +522,10 @@ impl Mission {
 
 impl Mission {
     fn after_transition(&mut self, source: &State, target: &State, context: &mut Ctx) {
-        context.journal.push(Entry::Transition { from: state_label(source), to: state_label(target) });
+        context.journal.push(Entry::Transition {
+            from: state_label(source),
+            to: state_label(target),
+        });
     }
 }
 

@@ -36,8 +36,12 @@ impl SourcePos {
     /// A position from a Rhai position.
     pub fn from_rhai(pos: rhai::Position) -> Self {
         Self {
-            line: pos.line().map_or(0, |l| u32::try_from(l).unwrap_or(u32::MAX)),
-            col: pos.position().map_or(0, |c| u32::try_from(c).unwrap_or(u32::MAX)),
+            line: pos
+                .line()
+                .map_or(0, |l| u32::try_from(l).unwrap_or(u32::MAX)),
+            col: pos
+                .position()
+                .map_or(0, |c| u32::try_from(c).unwrap_or(u32::MAX)),
         }
     }
 }
@@ -92,7 +96,11 @@ pub struct PlanError {
 
 impl fmt::Display for PlanError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(f, "{}:{}:{}: {}", self.file, self.pos.line, self.pos.col, self.message)
+        write!(
+            f,
+            "{}:{}:{}: {}",
+            self.file, self.pos.line, self.pos.col, self.message
+        )
     }
 }
 
@@ -240,7 +248,10 @@ impl Plan {
                 FailureClass::Thread
             }
             StepKind::EstimateNeedle(_) => {
-                let holder = self.holders().get(throw).and_then(|t| t.get(step).copied().flatten());
+                let holder = self
+                    .holders()
+                    .get(throw)
+                    .and_then(|t| t.get(step).copied().flatten());
                 match holder {
                     Some(NeedleHolder::Tissue) => FailureClass::Extraction,
                     Some(NeedleHolder::Left) => FailureClass::Handover,

@@ -5,7 +5,7 @@
 use crate::journal::{Entry, Journal, RunOutcome};
 use crate::machine::{Ctx, Cursor, Effect, Event, Mission, State, state_label, state_parts};
 use crate::plan::Plan;
-use crate::supervisor::{InterventionRequest, Supervisor};
+use crate::supervisor::{InterventionRequest, InterventionResult, Supervisor};
 use serde::Serialize;
 use statig::blocking::{InitializedStateMachine, IntoStateMachineExt};
 use std::sync::Arc;
@@ -27,6 +27,9 @@ pub struct Attempt {
     pub duration_s: f64,
     /// What happened.
     pub outcome: StepOutcome,
+    /// The intervention this attempt's failure led to, and how it ended.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub intervention: Option<InterventionResult>,
 }
 
 /// What happened in one throw.
@@ -70,7 +73,9 @@ pub struct Runner<'a> {
 
 impl std::fmt::Debug for Runner<'_> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Runner").field("state", self.machine.state()).finish_non_exhaustive()
+        f.debug_struct("Runner")
+            .field("state", self.machine.state())
+            .finish_non_exhaustive()
     }
 }
 
@@ -94,8 +99,18 @@ impl<'a> Runner<'a> {
             seed,
         });
         let throws = vec![ThrowSummary::default(); plan.throws.len()];
-        let machine = Mission::new(plan).uninitialized_state_machine().init_with_context(&mut ctx);
-        Self { machine, ctx, primitives, supervisor, clock, throws, attempts_started: 0 }
+        let machine = Mission::new(plan)
+            .uninitialized_state_machine()
+            .init_with_context(&mut ctx);
+        Self {
+            machine,
+            ctx,
+            primitives,
+            supervisor,
+            clock,
+            throws,
+            attempts_started: 0,
+        }
     }
 
     /// The machine's current state.
@@ -111,7 +126,10 @@ impl<'a> Runner<'a> {
                 Effect::HoldArms => {
                     let error = self.primitives.hold_all().err().map(|e| e.to_string());
                     self.ctx.journal.set_now(self.clock.now());
-                    self.ctx.journal.push(Entry::Hold { state: state_label(self.machine.state()), error });
+                    self.ctx.journal.push(Entry::Hold {
+                        state: state_label(self.machine.state()),
+                        error,
+                    });
                 }
             }
         }
@@ -140,10 +158,13 @@ impl<'a> Runner<'a> {
                         primitive: self.step_name(c),
                         class: *class,
                     };
+                    let result = self.supervisor.intervene(&request);
                     if let Some(t) = self.throws.get_mut(c.throw) {
                         t.interventions += 1;
+                        if let Some(last) = t.attempts.last_mut() {
+                            last.intervention = Some(result);
+                        }
                     }
-                    let result = self.supervisor.intervene(&request);
                     self.dispatch(Event::InterventionFinished(result));
                 }
                 (_, Some(c)) => {
@@ -161,7 +182,9 @@ impl<'a> Runner<'a> {
     }
 
     fn step_name(&self, c: Cursor) -> &'static str {
-        self.machine.inner().plan().throws[c.throw].steps[c.step].kind.name()
+        self.machine.inner().plan().throws[c.throw].steps[c.step]
+            .kind
+            .name()
     }
 
     fn attempt(&mut self, c: Cursor) {
@@ -206,6 +229,7 @@ impl<'a> Runner<'a> {
             start_s: start.as_secs_f64(),
             duration_s: end.saturating_sub(start).as_secs_f64(),
             outcome: outcome.clone(),
+            intervention: None,
         });
         if matches!(outcome, StepOutcome::Succeeded { .. }) && c.step + 1 == throw.steps.len() {
             summary.completed = true;
@@ -221,17 +245,24 @@ impl<'a> Runner<'a> {
                 class: *class,
                 throw: cursor.throw,
                 step: cursor.step,
-                primitive: mission.plan().throws[cursor.throw].steps[cursor.step].kind.name().into(),
+                primitive: mission.plan().throws[cursor.throw].steps[cursor.step]
+                    .kind
+                    .name()
+                    .into(),
                 reason: mission.last_failure().map(|f| f.kind.clone()),
             },
-            State::Aborted { cursor, by } => {
-                RunOutcome::Aborted { by: *by, throw: cursor.throw, step: cursor.step }
-            }
+            State::Aborted { cursor, by } => RunOutcome::Aborted {
+                by: *by,
+                throw: cursor.throw,
+                step: cursor.step,
+            },
             other => unreachable_state(state_parts(other).0),
         };
         let interventions = mission.interventions_used();
         self.ctx.journal.set_now(self.clock.now());
-        self.ctx.journal.push(Entry::Finished { outcome: outcome.clone() });
+        self.ctx.journal.push(Entry::Finished {
+            outcome: outcome.clone(),
+        });
         Report {
             outcome,
             throws: self.throws,

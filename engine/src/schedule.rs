@@ -55,7 +55,12 @@ impl OutcomeSchedule {
             file: file.into(),
             line: e.line(),
             col: e.column(),
-            message: e.to_string().split(" at line").next().unwrap_or_default().to_string(),
+            message: e
+                .to_string()
+                .split(" at line")
+                .next()
+                .unwrap_or_default()
+                .to_string(),
         })
     }
 
@@ -94,7 +99,8 @@ mod tests {
         .expect("valid");
         assert_eq!(s.outcomes, vec![Scripted::Ok, Scripted::Thread]);
         assert_eq!(s.supervisor[0].command, SupervisorCommand::EStop);
-        let e = OutcomeSchedule::from_json("s.json", "{\n\"outcomes\": [\"okay\"]}").expect_err("bad");
+        let e =
+            OutcomeSchedule::from_json("s.json", "{\n\"outcomes\": [\"okay\"]}").expect_err("bad");
         assert_eq!((e.line, e.file.as_str()), (2, "s.json"));
         assert!(e.to_string().contains("unknown variant `okay`"), "{e}");
     }

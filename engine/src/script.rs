@@ -9,8 +9,8 @@
 
 use crate::plan::{Plan, PlanError, SourcePos, Step, Throw};
 use rhai::packages::{
-    ArithmeticPackage, BasicArrayPackage, BasicIteratorPackage, BasicMapPackage,
-    BasicMathPackage, BasicStringPackage, LogicPackage, Package,
+    ArithmeticPackage, BasicArrayPackage, BasicIteratorPackage, BasicMapPackage, BasicMathPackage,
+    BasicStringPackage, LogicPackage, Package,
 };
 use rhai::{Array, Dynamic, EvalAltResult, INT, Map, NativeCallContext, Position};
 use std::path::Path;
@@ -73,21 +73,42 @@ pub const API: &[(&str, &str)] = &[
     ("rad", "rad(number) → angle in radians"),
     ("wound", "wound() → the wound's points, in suturing order"),
     ("suture", "suture(wound_point, [steps]) → one suture throw"),
-    ("mission", "mission(#{ name: \"..\", interventions: 0..2, throws: [..] }) → the plan"),
-    ("insert", "insert() or insert(#{ rotation: deg(..), push: mm(..) })"),
-    ("sweep", "sweep() or sweep(#{ distance: cm(..), jaw_open: deg(..) })"),
+    (
+        "mission",
+        "mission(#{ name: \"..\", interventions: 0..2, throws: [..] }) → the plan",
+    ),
+    (
+        "insert",
+        "insert() or insert(#{ rotation: deg(..), push: mm(..) })",
+    ),
+    (
+        "sweep",
+        "sweep() or sweep(#{ distance: cm(..), jaw_open: deg(..) })",
+    ),
     (
         "extract",
         "extract() or extract(#{ retries: 0..5, offset: cm(..), approach: cm(..), rotation: deg(..), min_travel: cm(..) })",
     ),
-    ("cinch", "cinch() or cinch(#{ l_des: cm(..), l_each: cm(..) })"),
+    (
+        "cinch",
+        "cinch() or cinch(#{ l_des: cm(..), l_each: cm(..) })",
+    ),
     (
         "handover",
         "handover() or handover(#{ retries: 0..5, offset: cm(..), jitter: mm(..), normal_tolerance: deg(..) })",
     ),
-    ("correct", "correct() or correct(#{ samples: 1..100, final_rotation: deg(..) })"),
-    ("estimate_needle", "estimate_needle() or estimate_needle(#{ samples: 1..100, retries: 0..5 })"),
-    ("track_thread", "track_thread() or track_thread(#{ retries: 0..5 })"),
+    (
+        "correct",
+        "correct() or correct(#{ samples: 1..100, final_rotation: deg(..) })",
+    ),
+    (
+        "estimate_needle",
+        "estimate_needle() or estimate_needle(#{ samples: 1..100, retries: 0..5 })",
+    ),
+    (
+        "track_thread",
+        "track_thread() or track_thread(#{ retries: 0..5 })",
+    ),
 ];
 
 /// Evaluates plan scripts in the sandbox.
@@ -141,7 +162,9 @@ impl PlanLoader {
             if ops % 1024 != 0 {
                 return None;
             }
-            let t0 = *start.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+            let t0 = *start
+                .lock()
+                .unwrap_or_else(std::sync::PoisonError::into_inner);
             (t0.elapsed() > deadline).then(|| {
                 Dynamic::from(format!(
                     "the script ran past the sandbox deadline of {} ms",
@@ -152,7 +175,9 @@ impl PlanLoader {
         let printed = Arc::new(Mutex::new(Vec::new()));
         let sink = Arc::clone(&printed);
         engine.on_print(move |s| {
-            sink.lock().unwrap_or_else(std::sync::PoisonError::into_inner).push(s.to_string());
+            sink.lock()
+                .unwrap_or_else(std::sync::PoisonError::into_inner)
+                .push(s.to_string());
         });
         let sink = Arc::clone(&printed);
         engine.on_debug(move |s, _, pos| {
@@ -163,7 +188,11 @@ impl PlanLoader {
 
         register_units(&mut engine);
         register_plan_api(&mut engine, wound.clone());
-        Self { engine, started, printed }
+        Self {
+            engine,
+            started,
+            printed,
+        }
     }
 
     /// Evaluate the script at `path` (not validated: see [`crate::load_plan`]).
@@ -179,8 +208,14 @@ impl PlanLoader {
 
     /// Evaluate `source`, naming it `file` in errors (not validated).
     pub fn eval_str(&self, file: &str, source: &str) -> Result<Loaded, PlanError> {
-        *self.started.lock().unwrap_or_else(std::sync::PoisonError::into_inner) = Instant::now();
-        self.printed.lock().unwrap_or_else(std::sync::PoisonError::into_inner).clear();
+        *self
+            .started
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner) = Instant::now();
+        self.printed
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .clear();
         let at = |pos: Position, message: String| PlanError {
             file: file.to_string(),
             pos: SourcePos::from_rhai(pos),
@@ -190,10 +225,16 @@ impl PlanLoader {
             .engine
             .compile(source)
             .map_err(|e| at(e.position(), format!("syntax error: {}", e.err_type())))?;
-        let result: Dynamic =
-            self.engine.eval_ast(&ast).map_err(|e| script_error(file, *e))?;
-        let printed =
-            std::mem::take(&mut *self.printed.lock().unwrap_or_else(std::sync::PoisonError::into_inner));
+        let result: Dynamic = self
+            .engine
+            .eval_ast(&ast)
+            .map_err(|e| script_error(file, *e))?;
+        let printed = std::mem::take(
+            &mut *self
+                .printed
+                .lock()
+                .unwrap_or_else(std::sync::PoisonError::into_inner),
+        );
         let type_name = result.type_name().to_string();
         let mut plan = result.try_cast::<Plan>().ok_or_else(|| {
             let line = source.lines().count().max(1);
@@ -238,14 +279,21 @@ fn script_error(file: &str, mut err: EvalAltResult) -> PlanError {
         }
         other => other.to_string(),
     };
-    PlanError { file: file.to_string(), pos: SourcePos::from_rhai(pos), message: format!("{message}{context}") }
+    PlanError {
+        file: file.to_string(),
+        pos: SourcePos::from_rhai(pos),
+        message: format!("{message}{context}"),
+    }
 }
 
 fn function_not_found(sig: &str) -> String {
-    let name = sig.split(|c: char| c == ' ' || c == '(').next().unwrap_or(sig);
+    let name = sig.split([' ', '(']).next().unwrap_or(sig);
     let args = sig[name.len()..].trim();
     if let Some((_, usage)) = API.iter().find(|(n, _)| *n == name) {
-        let args = args.replace("f64", "number").replace("i64", "integer").replace("()", "");
+        let args = args
+            .replace("f64", "number")
+            .replace("i64", "integer")
+            .replace("()", "");
         format!("`{name}` cannot take {args}; expected {usage}")
     } else {
         let names: Vec<_> = API.iter().map(|(n, _)| *n).collect();
@@ -276,14 +324,20 @@ fn friendly_type(rust_name: &str) -> String {
 }
 
 fn runtime(ctx: &NativeCallContext, message: String) -> Box<EvalAltResult> {
-    Box::new(EvalAltResult::ErrorRuntime(message.into(), ctx.call_position()))
+    Box::new(EvalAltResult::ErrorRuntime(
+        message.into(),
+        ctx.call_position(),
+    ))
 }
 
 fn finite(ctx: &NativeCallContext, what: &str, v: f64) -> RhaiResult<f64> {
     if v.is_finite() {
         Ok(v)
     } else {
-        Err(runtime(ctx, format!("{what}({v}): expected a finite number")))
+        Err(runtime(
+            ctx,
+            format!("{what}({v}): expected a finite number"),
+        ))
     }
 }
 
@@ -326,7 +380,9 @@ fn register_units(engine: &mut rhai::Engine) {
     arithmetic!(Angle);
     engine.register_fn("to_string", |a: &mut Length| format!("{} mm", a.0 * 1e3));
     engine.register_fn("to_debug", |a: &mut Length| format!("{} mm", a.0 * 1e3));
-    engine.register_fn("to_string", |a: &mut Angle| format!("{}°", a.0.to_degrees()));
+    engine.register_fn("to_string", |a: &mut Angle| {
+        format!("{}°", a.0.to_degrees())
+    });
     engine.register_fn("to_debug", |a: &mut Angle| format!("{}°", a.0.to_degrees()));
 }
 
@@ -336,10 +392,16 @@ fn register_plan_api(engine: &mut rhai::Engine, wound: Wound) {
     engine.register_type_with_name::<Throw>("Throw");
     engine.register_type_with_name::<Plan>("Mission");
     engine.register_get("index", |p: &mut WoundPoint| p.index as INT);
-    engine.register_fn("to_string", |p: &mut WoundPoint| format!("wound point {}", p.index + 1));
+    engine.register_fn("to_string", |p: &mut WoundPoint| {
+        format!("wound point {}", p.index + 1)
+    });
     engine.register_fn("to_string", |s: &mut Step| s.kind.name().to_string());
     engine.register_fn("to_string", |t: &mut Throw| {
-        format!("throw at wound point {} ({} steps)", t.point.index + 1, t.steps.len())
+        format!(
+            "throw at wound point {} ({} steps)",
+            t.point.index + 1,
+            t.steps.len()
+        )
     });
 
     let points = wound.points;
@@ -351,9 +413,12 @@ fn register_plan_api(engine: &mut rhai::Engine, wound: Wound) {
         engine.register_fn(name, move |ctx: NativeCallContext| -> RhaiResult<Step> {
             make_step(&ctx, name, None)
         });
-        engine.register_fn(name, move |ctx: NativeCallContext, params: Map| -> RhaiResult<Step> {
-            make_step(&ctx, name, Some(params))
-        });
+        engine.register_fn(
+            name,
+            move |ctx: NativeCallContext, params: Map| -> RhaiResult<Step> {
+                make_step(&ctx, name, Some(params))
+            },
+        );
     }
 
     engine.register_fn(
@@ -377,7 +442,11 @@ fn register_plan_api(engine: &mut rhai::Engine, wound: Wound) {
                     })
                 })
                 .collect::<RhaiResult<Vec<_>>>()?;
-            Ok(Throw { point, steps, pos: SourcePos::from_rhai(ctx.call_position()) })
+            Ok(Throw {
+                point,
+                steps,
+                pos: SourcePos::from_rhai(ctx.call_position()),
+            })
         },
     );
 
@@ -448,13 +517,20 @@ fn make_step(ctx: &NativeCallContext, name: &'static str, params: Option<Map>) -
                 ctx,
                 format!(
                     "{name}: unknown parameter `{key}`; expected {}",
-                    if names.is_empty() { "none".to_string() } else { names.join(", ") }
+                    if names.is_empty() {
+                        "none".to_string()
+                    } else {
+                        names.join(", ")
+                    }
                 ),
             ));
         };
         let found = describe_value(&value);
         let wrong = |expected: &str| {
-            runtime(ctx, format!("{name}: `{key}` must be {expected}, found {found}"))
+            runtime(
+                ctx,
+                format!("{name}: `{key}` must be {expected}, found {found}"),
+            )
         };
         let v = match spec.quantity {
             Quantity::Length => match value.try_cast::<Length>() {
@@ -476,9 +552,13 @@ fn make_step(ctx: &NativeCallContext, name: &'static str, params: Option<Map>) -
                 }
             },
         };
-        kind.set(spec.name, v).map_err(|e| runtime(ctx, e.to_string()))?;
+        kind.set(spec.name, v)
+            .map_err(|e| runtime(ctx, e.to_string()))?;
     }
-    Ok(Step { kind, pos: SourcePos::from_rhai(ctx.call_position()) })
+    Ok(Step {
+        kind,
+        pos: SourcePos::from_rhai(ctx.call_position()),
+    })
 }
 
 fn describe_value(v: &Dynamic) -> String {

@@ -59,10 +59,17 @@ impl fmt::Display for SupervisorCommand {
 impl FromStr for SupervisorCommand {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, Self::Err> {
-        Self::ALL.iter().copied().find(|c| c.as_str() == s).ok_or_else(|| {
-            let names: Vec<_> = Self::ALL.iter().map(Self::as_str).collect();
-            format!("unknown supervisor command `{s}`; expected one of {}", names.join(", "))
-        })
+        Self::ALL
+            .iter()
+            .copied()
+            .find(|c| c.as_str() == s)
+            .ok_or_else(|| {
+                let names: Vec<_> = Self::ALL.iter().map(Self::as_str).collect();
+                format!(
+                    "unknown supervisor command `{s}`; expected one of {}",
+                    names.join(", ")
+                )
+            })
     }
 }
 
@@ -157,6 +164,8 @@ impl Supervisor for ScriptedSupervisor {
 
     fn intervene(&mut self, request: &InterventionRequest) -> InterventionResult {
         self.requests.push(request.clone());
-        self.interventions.pop_front().unwrap_or(InterventionResult::Recovered)
+        self.interventions
+            .pop_front()
+            .unwrap_or(InterventionResult::Recovered)
     }
 }

@@ -8,7 +8,11 @@ use stitch_primitives::{Quantity, StepKind, Value};
 pub fn validate(plan: &Plan) -> Result<(), PlanErrors> {
     let mut errors = Vec::new();
     let mut err = |pos: SourcePos, message: String| {
-        errors.push(PlanError { file: plan.file.clone(), pos, message });
+        errors.push(PlanError {
+            file: plan.file.clone(),
+            pos,
+            message,
+        });
     };
 
     if plan.name.trim().is_empty() {
@@ -26,12 +30,19 @@ pub fn validate(plan: &Plan) -> Result<(), PlanErrors> {
         );
     }
     if plan.throws.is_empty() {
-        err(plan.pos, "mission: expected at least one throw, found none".into());
+        err(
+            plan.pos,
+            "mission: expected at least one throw, found none".into(),
+        );
     }
     if plan.throws.len() > caps::THROWS {
         err(
             plan.pos,
-            format!("mission: {} throws exceeds the limit of {}", plan.throws.len(), caps::THROWS),
+            format!(
+                "mission: {} throws exceeds the limit of {}",
+                plan.throws.len(),
+                caps::THROWS
+            ),
         );
     }
 
@@ -40,7 +51,10 @@ pub fn validate(plan: &Plan) -> Result<(), PlanErrors> {
         let n = ti + 1;
         let (entry, exit) = (throw.point.entry, throw.point.exit);
         if !entry.iter().chain(exit.iter()).all(|v| v.is_finite()) {
-            err(throw.pos, format!("throw {n}: entry and exit points must be finite"));
+            err(
+                throw.pos,
+                format!("throw {n}: entry and exit points must be finite"),
+            );
         } else {
             let bite = (exit - entry).norm();
             if !(0.001..=0.05).contains(&bite) {
@@ -129,14 +143,24 @@ pub fn validate(plan: &Plan) -> Result<(), PlanErrors> {
             }
         }
         if inserts != 1 {
-            err(throw.pos, format!("throw {n}: expected exactly one insert(), found {inserts}"));
+            err(
+                throw.pos,
+                format!("throw {n}: expected exactly one insert(), found {inserts}"),
+            );
         }
         if extracts != 1 {
-            err(throw.pos, format!("throw {n}: expected exactly one extract(), found {extracts}"));
+            err(
+                throw.pos,
+                format!("throw {n}: expected exactly one extract(), found {extracts}"),
+            );
         }
     }
 
-    if errors.is_empty() { Ok(()) } else { Err(PlanErrors(errors)) }
+    if errors.is_empty() {
+        Ok(())
+    } else {
+        Err(PlanErrors(errors))
+    }
 }
 
 fn assumed_after(kind: &StepKind, holder: NeedleHolder) -> NeedleHolder {
@@ -151,7 +175,9 @@ fn assumed_after(kind: &StepKind, holder: NeedleHolder) -> NeedleHolder {
 fn check_ranges(kind: &StepKind, throw: usize, mut err: impl FnMut(String)) {
     let name = kind.name();
     for spec in kind.param_specs() {
-        let Some(value) = kind.get(spec.name) else { continue };
+        let Some(value) = kind.get(spec.name) else {
+            continue;
+        };
         let (v, shown, lo, hi) = match (spec.quantity, value) {
             (Quantity::Length, Value::Length(v)) => (
                 v,
@@ -174,7 +200,10 @@ fn check_ranges(kind: &StepKind, throw: usize, mut err: impl FnMut(String)) {
             // The parameter tables and the step structs disagree: a programming error that
             // must not pass silently.
             _ => {
-                err(format!("throw {throw}: {name}.{} has the wrong kind of value", spec.name));
+                err(format!(
+                    "throw {throw}: {name}.{} has the wrong kind of value",
+                    spec.name
+                ));
                 continue;
             }
         };
@@ -222,7 +251,10 @@ mod tests {
     use stitch_robot::{Point, WoundPoint};
 
     fn step(name: &str, line: u32) -> Step {
-        Step { kind: StepKind::default_for(name).expect("known"), pos: SourcePos { line, col: 5 } }
+        Step {
+            kind: StepKind::default_for(name).expect("known"),
+            pos: SourcePos { line, col: 5 },
+        }
     }
 
     fn plan(throws: Vec<Vec<Step>>) -> Plan {
@@ -265,8 +297,18 @@ mod tests {
         let e = validate(&plan(vec![steps])).expect_err("invalid");
         let first = &e.0[0];
         assert_eq!(first.pos.line, 4);
-        assert!(first.message.contains("handover needs the needle in the left jaw"), "{first}");
-        assert!(first.message.contains("extract() must come before handover()"), "{first}");
+        assert!(
+            first
+                .message
+                .contains("handover needs the needle in the left jaw"),
+            "{first}"
+        );
+        assert!(
+            first
+                .message
+                .contains("extract() must come before handover()"),
+            "{first}"
+        );
     }
 
     #[test]
@@ -275,19 +317,35 @@ mod tests {
         let e = validate(&plan(vec![first, full(7)])).expect_err("invalid");
         assert_eq!(e.0.len(), 1, "{e}");
         assert_eq!(e.0[0].pos.line, 7);
-        assert!(e.0[0].message.contains("add handover() to the end of throw 1"), "{e}");
+        assert!(
+            e.0[0]
+                .message
+                .contains("add handover() to the end of throw 1"),
+            "{e}"
+        );
     }
 
     #[test]
     fn retries_above_the_cap_and_interventions_above_two_are_rejected() {
         let mut steps = full(9);
-        steps[2].kind.set("retries", Value::Count(9)).expect("count");
+        steps[2]
+            .kind
+            .set("retries", Value::Count(9))
+            .expect("count");
         let mut p = plan(vec![steps]);
         p.interventions = 3;
         let e = validate(&p).expect_err("invalid");
         let text = e.to_string();
-        assert!(text.contains("t.rhai:1:1: mission: interventions 3 exceeds"), "{text}");
-        assert!(text.contains("t.rhai:9:5: throw 1: extract: retries 9 exceeds the engine's hard cap of 5"), "{text}");
+        assert!(
+            text.contains("t.rhai:1:1: mission: interventions 3 exceeds"),
+            "{text}"
+        );
+        assert!(
+            text.contains(
+                "t.rhai:9:5: throw 1: extract: retries 9 exceeds the engine's hard cap of 5"
+            ),
+            "{text}"
+        );
     }
 
     #[test]
@@ -305,8 +363,16 @@ mod tests {
     #[test]
     fn out_of_range_parameters_say_the_range_in_units() {
         let mut steps = full(1);
-        steps[0].kind.set("rotation", Value::Angle(3.0)).expect("angle");
+        steps[0]
+            .kind
+            .set("rotation", Value::Angle(3.0))
+            .expect("angle");
         let e = validate(&plan(vec![steps])).expect_err("invalid");
-        assert!(e.0[0].message.contains("rotation = 171.9° is out of range; expected 10.0° to 120.0°"), "{e}");
+        assert!(
+            e.0[0]
+                .message
+                .contains("rotation = 171.9° is out of range; expected 10.0° to 120.0°"),
+            "{e}"
+        );
     }
 }

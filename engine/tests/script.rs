@@ -7,7 +7,10 @@ use stitch_primitives::StepKind;
 use stitch_robot::{Wound, WoundSpec};
 
 fn loader() -> PlanLoader {
-    PlanLoader::new(&Wound::linear(&WoundSpec::default()).expect("default wound"), ScriptLimits::default())
+    PlanLoader::new(
+        &Wound::linear(&WoundSpec::default()).expect("default wound"),
+        ScriptLimits::default(),
+    )
 }
 
 fn scripts() -> std::path::PathBuf {
@@ -77,7 +80,10 @@ fn an_unknown_primitive_names_its_position_and_the_known_ones() {
     let e = error_of(&format!(
         "let t = suture(wound()[0], [\n    insert(),\n    stab(),\n    {GOOD_THROW}]);\nmission(#{{ throws: [t] }})"
     ));
-    assert!(e.starts_with("plan.rhai:3:5: unknown function or primitive `stab`"), "{e}");
+    assert!(
+        e.starts_with("plan.rhai:3:5: unknown function or primitive `stab`"),
+        "{e}"
+    );
     assert!(e.contains("insert, sweep, extract"), "{e}");
 }
 
@@ -89,9 +95,15 @@ fn a_wrong_unit_names_the_parameter_and_the_expected_unit() {
         "{e}"
     );
     let e = error_of("let s = insert(#{ push: 4 });");
-    assert!(e.contains("`push` must be a length") && e.contains("found a bare number 4"), "{e}");
+    assert!(
+        e.contains("`push` must be a length") && e.contains("found a bare number 4"),
+        "{e}"
+    );
     let e = error_of("let s = extract(#{ retries: 2.5 });");
-    assert!(e.starts_with("plan.rhai:1:9: extract: `retries` must be a whole number, found 2.5"), "{e}");
+    assert!(
+        e.starts_with("plan.rhai:1:9: extract: `retries` must be a whole number, found 2.5"),
+        "{e}"
+    );
 }
 
 #[test]
@@ -100,7 +112,9 @@ fn extract_with_nine_retries_is_refused_at_its_call() {
         "let t = suture(wound()[0], [insert(), sweep(),\n  extract(#{ retries: 9 }), handover()]);\nmission(#{ name: \"x\", throws: [t] })",
     );
     assert!(
-        e.starts_with("plan.rhai:2:3: throw 1: extract: retries 9 exceeds the engine's hard cap of 5"),
+        e.starts_with(
+            "plan.rhai:2:3: throw 1: extract: retries 9 exceeds the engine's hard cap of 5"
+        ),
         "{e}"
     );
 }
@@ -110,43 +124,71 @@ fn handover_before_extract_is_refused_at_the_handover() {
     let e = error_of(
         "let t = suture(wound()[0], [\n  insert(),\n  handover(),\n  extract()]);\nmission(#{ name: \"x\", throws: [t] })",
     );
-    assert!(e.starts_with("plan.rhai:3:3: throw 1: handover needs the needle in the left jaw"), "{e}");
+    assert!(
+        e.starts_with("plan.rhai:3:3: throw 1: handover needs the needle in the left jaw"),
+        "{e}"
+    );
 }
 
 #[test]
 fn the_script_must_return_a_mission() {
     let e = error_of("let x = 1;\nx");
-    assert!(e.starts_with("plan.rhai:2:1: the script must end with a mission"), "{e}");
+    assert!(
+        e.starts_with("plan.rhai:2:1: the script must end with a mission"),
+        "{e}"
+    );
     assert!(e.ends_with("it returned an integer"), "{e}");
 }
 
 #[test]
 fn errors_in_script_functions_point_inside_the_function() {
     let e = error_of("fn bad() {\n  insert(#{ spin: deg(3) })\n}\nlet s = bad();");
-    assert!(e.starts_with("plan.rhai:2:3: insert: unknown parameter `spin`; expected rotation, push"), "{e}");
+    assert!(
+        e.starts_with("plan.rhai:2:3: insert: unknown parameter `spin`; expected rotation, push"),
+        "{e}"
+    );
     assert!(e.contains("(in `bad` called at 4:9)"), "{e}");
 }
 
 #[test]
 fn undefined_variables_are_refused_before_running() {
-    let e = error_of("let t = suture(wound()[0], [insert()]);\nmission(#{ name: \"x\", throws: [t, u] })");
-    assert!(e.starts_with("plan.rhai:2:35: syntax error: Undefined variable: u"), "{e}");
+    let e = error_of(
+        "let t = suture(wound()[0], [insert()]);\nmission(#{ name: \"x\", throws: [t, u] })",
+    );
+    assert!(
+        e.starts_with("plan.rhai:2:35: syntax error: Undefined variable: u"),
+        "{e}"
+    );
 }
 
 #[test]
 fn an_endless_loop_is_stopped_within_a_second() {
     let t0 = Instant::now();
     let e = error_of("let i = 0;\nloop { i += 1; }");
-    assert!(t0.elapsed() < Duration::from_secs(1), "took {:?}", t0.elapsed());
-    assert!(e.contains("stopped by the sandbox: too many operations"), "{e}");
+    assert!(
+        t0.elapsed() < Duration::from_secs(1),
+        "took {:?}",
+        t0.elapsed()
+    );
+    assert!(
+        e.contains("stopped by the sandbox: too many operations"),
+        "{e}"
+    );
 }
 
 #[test]
 fn a_deep_recursion_is_stopped_within_a_second() {
     let t0 = Instant::now();
     let e = error_of("fn down(n) { down(n + 1) }\ndown(0)");
-    assert!(t0.elapsed() < Duration::from_secs(1), "took {:?}", t0.elapsed());
-    assert!(e.contains("stopped by the sandbox: calls nested too deeply"), "{e}");
+    assert!(
+        t0.elapsed() < Duration::from_secs(1),
+        "took {:?}",
+        t0.elapsed()
+    );
+    assert!(
+        e.contains("stopped by the sandbox: calls nested too deeply"),
+        "{e}"
+    );
 }
 
 #[test]
@@ -156,11 +198,23 @@ fn the_deadline_stops_a_script_that_stays_under_the_operation_limit() {
         deadline: Duration::from_millis(100),
         ..ScriptLimits::default()
     };
-    let loader = PlanLoader::new(&Wound::linear(&WoundSpec::default()).expect("wound"), limits);
+    let loader = PlanLoader::new(
+        &Wound::linear(&WoundSpec::default()).expect("wound"),
+        limits,
+    );
     let t0 = Instant::now();
-    let e = load_plan_str(&loader, "plan.rhai", "let i = 0;\nwhile true { i += 1; }").expect_err("stopped");
-    assert!(t0.elapsed() < Duration::from_secs(1), "took {:?}", t0.elapsed());
-    assert!(e.to_string().contains("ran past the sandbox deadline of 100 ms"), "{e}");
+    let e = load_plan_str(&loader, "plan.rhai", "let i = 0;\nwhile true { i += 1; }")
+        .expect_err("stopped");
+    assert!(
+        t0.elapsed() < Duration::from_secs(1),
+        "took {:?}",
+        t0.elapsed()
+    );
+    assert!(
+        e.to_string()
+            .contains("ran past the sandbox deadline of 100 ms"),
+        "{e}"
+    );
 }
 
 #[test]

@@ -104,12 +104,17 @@ pub enum StepOutcome {
 impl StepOutcome {
     /// Success with nothing measured.
     pub fn ok() -> Self {
-        StepOutcome::Succeeded { measured: Measurements::default() }
+        StepOutcome::Succeeded {
+            measured: Measurements::default(),
+        }
     }
 
     /// Failure of `kind` with nothing measured.
     pub fn failed(kind: FailureKind) -> Self {
-        StepOutcome::Failed(Failure { kind, measured: Measurements::default() })
+        StepOutcome::Failed(Failure {
+            kind,
+            measured: Measurements::default(),
+        })
     }
 
     /// The measurements, whichever the result.

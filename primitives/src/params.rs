@@ -146,7 +146,10 @@ pub struct InsertParams {
 }
 impl Default for InsertParams {
     fn default() -> Self {
-        Self { rotation_rad: INSERT_ROTATION_RAD, push_m: INSERT_PUSH_M }
+        Self {
+            rotation_rad: INSERT_ROTATION_RAD,
+            push_m: INSERT_PUSH_M,
+        }
     }
 }
 
@@ -160,7 +163,10 @@ pub struct SweepParams {
 }
 impl Default for SweepParams {
     fn default() -> Self {
-        Self { distance_m: SWEEP_DISTANCE_M, jaw_open_rad: SWEEP_JAW_OPEN_RAD }
+        Self {
+            distance_m: SWEEP_DISTANCE_M,
+            jaw_open_rad: SWEEP_JAW_OPEN_RAD,
+        }
     }
 }
 
@@ -200,7 +206,10 @@ pub struct CinchParams {
 }
 impl Default for CinchParams {
     fn default() -> Self {
-        Self { l_des_m: CINCH_L_DES_M, l_each_m: CINCH_L_EACH_M }
+        Self {
+            l_des_m: CINCH_L_DES_M,
+            l_each_m: CINCH_L_EACH_M,
+        }
     }
 }
 impl CinchParams {
@@ -244,7 +253,10 @@ pub struct CorrectParams {
 }
 impl Default for CorrectParams {
     fn default() -> Self {
-        Self { samples: CORRECT_SAMPLES, final_rotation_rad: CORRECT_FINAL_ROTATION_RAD }
+        Self {
+            samples: CORRECT_SAMPLES,
+            final_rotation_rad: CORRECT_FINAL_ROTATION_RAD,
+        }
     }
 }
 
@@ -258,7 +270,10 @@ pub struct EstimateParams {
 }
 impl Default for EstimateParams {
     fn default() -> Self {
-        Self { samples: ESTIMATE_SAMPLES, retries: PERCEPTION_RETRIES }
+        Self {
+            samples: ESTIMATE_SAMPLES,
+            retries: PERCEPTION_RETRIES,
+        }
     }
 }
 
@@ -270,7 +285,9 @@ pub struct TrackThreadParams {
 }
 impl Default for TrackThreadParams {
     fn default() -> Self {
-        Self { retries: PERCEPTION_RETRIES }
+        Self {
+            retries: PERCEPTION_RETRIES,
+        }
     }
 }
 
@@ -442,39 +459,147 @@ const LENGTH_MAX_M: f64 = 0.10;
 /// The parameters of the step called `name` in scripts (empty for an unknown name).
 pub fn param_specs(name: &str) -> &'static [ParamSpec] {
     const INSERT: &[ParamSpec] = &[
-        spec!("rotation", Angle, deg(10.0), deg(120.0), "rotation about the estimated needle normal"),
-        spec!("push", Length, 0.0005, 0.02, "straight push of the tip along entry→exit"),
+        spec!(
+            "rotation",
+            Angle,
+            deg(10.0),
+            deg(120.0),
+            "rotation about the estimated needle normal"
+        ),
+        spec!(
+            "push",
+            Length,
+            0.0005,
+            0.02,
+            "straight push of the tip along entry→exit"
+        ),
     ];
     const SWEEP: &[ParamSpec] = &[
-        spec!("distance", Length, 0.005, LENGTH_MAX_M, "travel of the open jaw along +y"),
-        spec!("jaw_open", Angle, deg(20.0), deg(80.0), "jaw opening during the sweep"),
+        spec!(
+            "distance",
+            Length,
+            0.005,
+            LENGTH_MAX_M,
+            "travel of the open jaw along +y"
+        ),
+        spec!(
+            "jaw_open",
+            Angle,
+            deg(20.0),
+            deg(80.0),
+            "jaw opening during the sweep"
+        ),
     ];
     const EXTRACT: &[ParamSpec] = &[
-        spec!("retries", Count, 0.0, 5.0, "retries while the endpoint moved less than min_travel"),
-        spec!("offset", Length, 0.002, 0.03, "horizontal stand-off from the re-grasp point"),
-        spec!("approach", Length, 0.002, 0.03, "approach towards the re-grasp point"),
-        spec!("rotation", Angle, deg(20.0), deg(120.0), "rotation about the needle axis"),
-        spec!("min_travel", Length, 0.002, 0.05, "endpoint travel below which extraction is retried"),
+        spec!(
+            "retries",
+            Count,
+            0.0,
+            5.0,
+            "retries while the endpoint moved less than min_travel"
+        ),
+        spec!(
+            "offset",
+            Length,
+            0.002,
+            0.03,
+            "horizontal stand-off from the re-grasp point"
+        ),
+        spec!(
+            "approach",
+            Length,
+            0.002,
+            0.03,
+            "approach towards the re-grasp point"
+        ),
+        spec!(
+            "rotation",
+            Angle,
+            deg(20.0),
+            deg(120.0),
+            "rotation about the needle axis"
+        ),
+        spec!(
+            "min_travel",
+            Length,
+            0.002,
+            0.05,
+            "endpoint travel below which extraction is retried"
+        ),
     ];
     const CINCH: &[ParamSpec] = &[
-        spec!("l_des", Length, 0.01, 0.40, "thread pulled for the first suture (β for i = 1)"),
+        spec!(
+            "l_des",
+            Length,
+            0.01,
+            0.40,
+            "thread pulled for the first suture (β for i = 1)"
+        ),
         spec!("l_each", Length, 0.0, 0.10, "thread one suture uses"),
     ];
     const HANDOVER: &[ParamSpec] = &[
-        spec!("retries", Count, 0.0, 5.0, "re-attempts while the needle normal did not change"),
-        spec!("offset", Length, 0.002, 0.03, "horizontal stand-off from the re-grasp point"),
-        spec!("jitter", Length, 0.0, 0.005, "largest random horizontal offset on a re-attempt"),
-        spec!("normal_tolerance", Angle, deg(0.1), deg(20.0), "a normal change below this is \"unchanged\""),
+        spec!(
+            "retries",
+            Count,
+            0.0,
+            5.0,
+            "re-attempts while the needle normal did not change"
+        ),
+        spec!(
+            "offset",
+            Length,
+            0.002,
+            0.03,
+            "horizontal stand-off from the re-grasp point"
+        ),
+        spec!(
+            "jitter",
+            Length,
+            0.0,
+            0.005,
+            "largest random horizontal offset on a re-attempt"
+        ),
+        spec!(
+            "normal_tolerance",
+            Angle,
+            deg(0.1),
+            deg(20.0),
+            "a normal change below this is \"unchanged\""
+        ),
     ];
     const CORRECT: &[ParamSpec] = &[
-        spec!("samples", Count, 1.0, 100.0, "normal samples averaged at the corner"),
-        spec!("final_rotation", Angle, deg(-180.0), deg(180.0), "final rotation about +y"),
+        spec!(
+            "samples",
+            Count,
+            1.0,
+            100.0,
+            "normal samples averaged at the corner"
+        ),
+        spec!(
+            "final_rotation",
+            Angle,
+            deg(-180.0),
+            deg(180.0),
+            "final rotation about +y"
+        ),
     ];
     const ESTIMATE: &[ParamSpec] = &[
         spec!("samples", Count, 1.0, 100.0, "pose samples averaged"),
-        spec!("retries", Count, 0.0, 5.0, "retries after a perception dropout"),
+        spec!(
+            "retries",
+            Count,
+            0.0,
+            5.0,
+            "retries after a perception dropout"
+        ),
     ];
-    const TRACK: &[ParamSpec] = &[spec!("retries", Count, 0.0, 5.0, "retries after a perception dropout")];
+    const TRACK: &[ParamSpec] = &[spec!(
+        "retries",
+        Count,
+        0.0,
+        5.0,
+        "retries after a perception dropout"
+    )];
     match name {
         "insert" => INSERT,
         "sweep" => SWEEP,
@@ -519,7 +644,10 @@ mod tests {
 
     #[test]
     fn beta_follows_the_papers_formula() {
-        let c = CinchParams { l_des_m: 0.12, l_each_m: 0.02 };
+        let c = CinchParams {
+            l_des_m: 0.12,
+            l_each_m: 0.02,
+        };
         assert!((c.beta_m(1) - 0.12).abs() < 1e-12);
         assert!((c.beta_m(6) - 0.02).abs() < 1e-12);
     }

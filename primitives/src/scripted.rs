@@ -102,7 +102,9 @@ impl Scripted {
             },
             Scripted::Dropout => FailureKind::PerceptionDropout,
             Scripted::Dropped => FailureKind::NeedleDropped,
-            Scripted::Fault => FailureKind::ArmFault { message: "scripted arm fault".into() },
+            Scripted::Fault => FailureKind::ArmFault {
+                message: "scripted arm fault".into(),
+            },
         };
         StepOutcome::Failed(crate::Failure { kind, measured })
     }
@@ -123,7 +125,10 @@ impl FromStr for Scripted {
             .find(|t| t.as_str() == s)
             .ok_or_else(|| {
                 let names: Vec<_> = SCRIPTED_TOKENS.iter().map(Scripted::as_str).collect();
-                format!("unknown outcome `{s}`; expected one of {}", names.join(", "))
+                format!(
+                    "unknown outcome `{s}`; expected one of {}",
+                    names.join(", ")
+                )
             })
     }
 }
@@ -173,10 +178,16 @@ impl Default for OutcomeModel {
 
 impl OutcomeModel {
     fn weights_for(&self, name: &str) -> [f64; 7] {
-        self.weights.iter().find(|(n, _)| *n == name).map_or([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0], |(_, w)| *w)
+        self.weights
+            .iter()
+            .find(|(n, _)| *n == name)
+            .map_or([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0], |(_, w)| *w)
     }
     fn duration_for(&self, name: &str) -> f64 {
-        self.durations_s.iter().find(|(n, _)| *n == name).map_or(1.0, |(_, d)| *d)
+        self.durations_s
+            .iter()
+            .find(|(n, _)| *n == name)
+            .map_or(1.0, |(_, d)| *d)
     }
 }
 
@@ -186,7 +197,15 @@ enum Source {
     /// Given in order; `ok` once exhausted.
     Schedule(VecDeque<Scripted>),
     /// Drawn from the model with a seeded generator.
-    Seeded { model: OutcomeModel, outcomes: ChaCha8Rng, durations: ChaCha8Rng },
+    Seeded(Box<Seeded>),
+}
+
+/// The seeded source's model and its two independent streams.
+#[derive(Debug)]
+struct Seeded {
+    model: OutcomeModel,
+    outcomes: ChaCha8Rng,
+    durations: ChaCha8Rng,
 }
 
 /// One call the engine made, as recorded.
@@ -235,7 +254,11 @@ impl ScriptedPrimitives {
         let mut durations = ChaCha8Rng::seed_from_u64(seed);
         durations.set_stream(2);
         Self {
-            source: Source::Seeded { model, outcomes, durations },
+            source: Source::Seeded(Box::new(Seeded {
+                model,
+                outcomes,
+                durations,
+            })),
             clock,
             calls: Vec::new(),
             holds: Vec::new(),
@@ -248,7 +271,12 @@ impl ScriptedPrimitives {
                 let nominal = OutcomeModel::default().duration_for(name);
                 (queue.pop_front().unwrap_or(Scripted::Ok), nominal)
             }
-            Source::Seeded { model, outcomes, durations } => {
+            Source::Seeded(seeded) => {
+                let Seeded {
+                    model,
+                    outcomes,
+                    durations,
+                } = &mut **seeded;
                 let weights = model.weights_for(name);
                 let total: f64 = weights.iter().sum();
                 let mut x = outcomes.random::<f64>() * total;
@@ -272,7 +300,8 @@ impl Primitives for ScriptedPrimitives {
     fn run(&mut self, req: &StepRequest<'_>) -> StepOutcome {
         let name = req.kind.name();
         let (token, duration_s) = self.next(name);
-        self.clock.sleep(Duration::from_secs_f64(duration_s.max(0.0)));
+        self.clock
+            .sleep(Duration::from_secs_f64(duration_s.max(0.0)));
         self.calls.push(Call {
             throw: req.throw,
             step: req.step,
@@ -295,7 +324,11 @@ mod tests {
     use stitch_robot::{Point, WoundPoint};
 
     fn point() -> WoundPoint {
-        WoundPoint { index: 0, entry: Point::new(0.0, 0.0, 0.0), exit: Point::new(0.01, 0.0, 0.0) }
+        WoundPoint {
+            index: 0,
+            entry: Point::new(0.0, 0.0, 0.0),
+            exit: Point::new(0.01, 0.0, 0.0),
+        }
     }
 
     fn run_all(p: &mut ScriptedPrimitives, n: usize) -> Vec<Scripted> {
@@ -303,7 +336,13 @@ mod tests {
         let pt = point();
         (0..n)
             .map(|i| {
-                p.run(&StepRequest { throw: 0, step: 0, point: &pt, kind: &kind, attempt: i as u32 });
+                p.run(&StepRequest {
+                    throw: 0,
+                    step: 0,
+                    point: &pt,
+                    kind: &kind,
+                    attempt: i as u32,
+                });
                 p.calls[i].token
             })
             .collect()
@@ -312,16 +351,31 @@ mod tests {
     #[test]
     fn a_schedule_is_followed_then_succeeds() {
         let clock = SimClock::new();
-        let mut p = ScriptedPrimitives::from_schedule([Scripted::NoProgress, Scripted::Thread], clock.clone());
-        assert_eq!(run_all(&mut p, 3), vec![Scripted::NoProgress, Scripted::Thread, Scripted::Ok]);
+        let mut p = ScriptedPrimitives::from_schedule(
+            [Scripted::NoProgress, Scripted::Thread],
+            clock.clone(),
+        );
+        assert_eq!(
+            run_all(&mut p, 3),
+            vec![Scripted::NoProgress, Scripted::Thread, Scripted::Ok]
+        );
         assert_eq!(clock.now(), Duration::from_secs(90));
     }
 
     #[test]
     fn the_same_seed_draws_the_same_outcomes_and_another_seed_does_not() {
-        let a = run_all(&mut ScriptedPrimitives::seeded(7, OutcomeModel::default(), SimClock::new()), 200);
-        let b = run_all(&mut ScriptedPrimitives::seeded(7, OutcomeModel::default(), SimClock::new()), 200);
-        let c = run_all(&mut ScriptedPrimitives::seeded(8, OutcomeModel::default(), SimClock::new()), 200);
+        let a = run_all(
+            &mut ScriptedPrimitives::seeded(7, OutcomeModel::default(), SimClock::new()),
+            200,
+        );
+        let b = run_all(
+            &mut ScriptedPrimitives::seeded(7, OutcomeModel::default(), SimClock::new()),
+            200,
+        );
+        let c = run_all(
+            &mut ScriptedPrimitives::seeded(8, OutcomeModel::default(), SimClock::new()),
+            200,
+        );
         assert_eq!(a, b);
         assert_ne!(a, c);
         // About 72 % successes for extract.
@@ -346,6 +400,11 @@ mod tests {
         for t in SCRIPTED_TOKENS {
             assert_eq!(t.as_str().parse::<Scripted>(), Ok(t));
         }
-        assert!("okay".parse::<Scripted>().unwrap_err().contains("expected one of"));
+        assert!(
+            "okay"
+                .parse::<Scripted>()
+                .unwrap_err()
+                .contains("expected one of")
+        );
     }
 }

@@ -25,7 +25,9 @@ pub struct MoveHandle {
 impl MoveHandle {
     /// A handle on a motion the backend tracks.
     pub fn new(tracker: Arc<dyn MotionTracker>) -> Self {
-        Self { tracker: Some(tracker) }
+        Self {
+            tracker: Some(tracker),
+        }
     }
 
     /// A handle on a motion that already ended.
@@ -76,7 +78,9 @@ pub trait Arm: Send + Sync {
     /// say so, and [`crate::SpeedLimit`] then refuses `move_cp`.
     fn set_max_speed(&self, limits: SpeedLimits) -> Result<(), RobotError> {
         let _ = limits;
-        Err(RobotError::Unsupported { what: format!("{}: trajectory speed limits", self.name()) })
+        Err(RobotError::Unsupported {
+            what: format!("{}: trajectory speed limits", self.name()),
+        })
     }
 }
 
@@ -107,16 +111,26 @@ pub struct DummyArm {
 impl DummyArm {
     /// A dummy arm at the identity pose.
     pub fn new(name: &str) -> Self {
-        Self { name: name.into(), commands: Mutex::new(Vec::new()), pose: Mutex::new(Pose::identity()) }
+        Self {
+            name: name.into(),
+            commands: Mutex::new(Vec::new()),
+            pose: Mutex::new(Pose::identity()),
+        }
     }
 
     /// The commands received so far.
     pub fn commands(&self) -> Vec<ArmCommand> {
-        self.commands.lock().unwrap_or_else(PoisonError::into_inner).clone()
+        self.commands
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone()
     }
 
     fn record(&self, c: ArmCommand) {
-        self.commands.lock().unwrap_or_else(PoisonError::into_inner).push(c);
+        self.commands
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .push(c);
     }
 }
 
@@ -165,7 +179,10 @@ mod tests {
         }
         fn wait(&self, timeout: Duration) -> Result<(), RobotError> {
             if self.is_busy() {
-                Err(RobotError::Timeout { arm: "t".into(), after_s: timeout.as_secs_f64() })
+                Err(RobotError::Timeout {
+                    arm: "t".into(),
+                    after_s: timeout.as_secs_f64(),
+                })
             } else {
                 Ok(())
             }

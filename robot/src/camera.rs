@@ -19,7 +19,11 @@ pub struct RgbImage {
 impl RgbImage {
     /// A black image.
     pub fn new(width: u32, height: u32) -> Self {
-        Self { width, height, data: vec![0; width as usize * height as usize * 3] }
+        Self {
+            width,
+            height,
+            data: vec![0; width as usize * height as usize * 3],
+        }
     }
 }
 
@@ -47,10 +51,17 @@ pub struct StereoCalibration {
 impl StereoCalibration {
     /// Refuse values no camera has.
     pub fn validate(&self) -> Result<(), RobotError> {
-        let bad = |why: String| Err(RobotError::InvalidConfig { what: "stereo calibration".into(), why });
+        let bad = |why: String| {
+            Err(RobotError::InvalidConfig {
+                what: "stereo calibration".into(),
+                why,
+            })
+        };
         for (name, v) in [("fx", self.fx), ("fy", self.fy)] {
             if !(v.is_finite() && v > 0.0) {
-                return bad(format!("{name} = {v}; expected a positive focal length in pixels"));
+                return bad(format!(
+                    "{name} = {v}; expected a positive focal length in pixels"
+                ));
             }
         }
         for (name, v) in [("cx", self.cx), ("cy", self.cy)] {
@@ -59,10 +70,16 @@ impl StereoCalibration {
             }
         }
         if !(self.baseline_m.is_finite() && (0.001..=0.5).contains(&self.baseline_m)) {
-            return bad(format!("baseline {} m; expected 0.001 to 0.5 m", self.baseline_m));
+            return bad(format!(
+                "baseline {} m; expected 0.001 to 0.5 m",
+                self.baseline_m
+            ));
         }
         if self.width == 0 || self.height == 0 {
-            return bad(format!("image size {}×{}; expected non-zero", self.width, self.height));
+            return bad(format!(
+                "image size {}×{}; expected non-zero",
+                self.width, self.height
+            ));
         }
         let t = self.camera_to_robot.translation.vector;
         let q = self.camera_to_robot.rotation.quaternion();
@@ -104,7 +121,10 @@ pub struct DummyCamera {
 impl DummyCamera {
     /// A dummy camera with this calibration.
     pub fn new(calibration: StereoCalibration) -> Self {
-        Self { calibration, captures: std::sync::atomic::AtomicUsize::new(0) }
+        Self {
+            calibration,
+            captures: std::sync::atomic::AtomicUsize::new(0),
+        }
     }
 }
 
@@ -113,9 +133,14 @@ impl StereoCamera for DummyCamera {
         &self.calibration
     }
     fn capture(&self) -> Result<StereoFrame, RobotError> {
-        self.captures.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+        self.captures
+            .fetch_add(1, std::sync::atomic::Ordering::SeqCst);
         let (w, h) = (self.calibration.width, self.calibration.height);
-        Ok(StereoFrame { stamp: Duration::ZERO, left: RgbImage::new(w, h), right: RgbImage::new(w, h) })
+        Ok(StereoFrame {
+            stamp: Duration::ZERO,
+            left: RgbImage::new(w, h),
+            right: RgbImage::new(w, h),
+        })
     }
 }
 
@@ -139,17 +164,39 @@ mod tests {
     #[test]
     fn calibrations_are_checked() {
         calib().validate().expect("plausible");
-        let e = StereoCalibration { baseline_m: 2.0, ..calib() }.validate().expect_err("too wide");
+        let e = StereoCalibration {
+            baseline_m: 2.0,
+            ..calib()
+        }
+        .validate()
+        .expect_err("too wide");
         assert!(e.to_string().contains("baseline 2 m"), "{e}");
-        assert!(StereoCalibration { fx: -1.0, ..calib() }.validate().is_err());
-        assert!(StereoCalibration { width: 0, ..calib() }.validate().is_err());
+        assert!(
+            StereoCalibration {
+                fx: -1.0,
+                ..calib()
+            }
+            .validate()
+            .is_err()
+        );
+        assert!(
+            StereoCalibration {
+                width: 0,
+                ..calib()
+            }
+            .validate()
+            .is_err()
+        );
     }
 
     #[test]
     fn the_dummy_captures_frames_of_its_size() {
         let cam = DummyCamera::new(calib());
         let f = cam.capture().expect("frame");
-        assert_eq!((f.left.width, f.right.height, f.left.data.len()), (1280, 960, 1280 * 960 * 3));
+        assert_eq!(
+            (f.left.width, f.right.height, f.left.data.len()),
+            (1280, 960, 1280 * 960 * 3)
+        );
         assert_eq!(cam.captures.load(std::sync::atomic::Ordering::SeqCst), 1);
     }
 }

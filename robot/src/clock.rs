@@ -31,12 +31,19 @@ impl SimClock {
     pub fn advance(&self, d: Duration) {
         let add = u64::try_from(d.as_nanos()).unwrap_or(u64::MAX);
         // fetch_update with a closure that always returns Some cannot fail.
-        let _ = self.nanos.fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| Some(n.saturating_add(add)));
+        let _ = self
+            .nanos
+            .fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| {
+                Some(n.saturating_add(add))
+            });
     }
 
     /// Set the time.
     pub fn set(&self, t: Duration) {
-        self.nanos.store(u64::try_from(t.as_nanos()).unwrap_or(u64::MAX), Ordering::SeqCst);
+        self.nanos.store(
+            u64::try_from(t.as_nanos()).unwrap_or(u64::MAX),
+            Ordering::SeqCst,
+        );
     }
 }
 
@@ -59,7 +66,9 @@ pub struct WallClock {
 impl WallClock {
     /// A clock whose epoch is now.
     pub fn new() -> Self {
-        Self { epoch: Instant::now() }
+        Self {
+            epoch: Instant::now(),
+        }
     }
 }
 

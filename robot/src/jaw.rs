@@ -40,7 +40,11 @@ pub struct DummyJaw {
 impl DummyJaw {
     /// A closed dummy jaw.
     pub fn new(name: &str) -> Self {
-        Self { name: name.into(), commands: Mutex::new(Vec::new()), angle_rad: Mutex::new(0.0) }
+        Self {
+            name: name.into(),
+            commands: Mutex::new(Vec::new()),
+            angle_rad: Mutex::new(0.0),
+        }
     }
 }
 
@@ -49,14 +53,26 @@ impl Jaw for DummyJaw {
         &self.name
     }
     fn measured_jp(&self) -> Result<f64, RobotError> {
-        Ok(*self.angle_rad.lock().unwrap_or_else(PoisonError::into_inner))
+        Ok(*self
+            .angle_rad
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner))
     }
     fn move_jp(&self, angle_rad: f64) -> Result<MoveHandle, RobotError> {
         if !angle_rad.is_finite() {
-            return Err(RobotError::NonFinite { arm: self.name.clone(), what: "jaw angle".into() });
+            return Err(RobotError::NonFinite {
+                arm: self.name.clone(),
+                what: "jaw angle".into(),
+            });
         }
-        self.commands.lock().unwrap_or_else(PoisonError::into_inner).push(angle_rad);
-        *self.angle_rad.lock().unwrap_or_else(PoisonError::into_inner) = angle_rad;
+        self.commands
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .push(angle_rad);
+        *self
+            .angle_rad
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner) = angle_rad;
         Ok(MoveHandle::done())
     }
 }
@@ -71,7 +87,10 @@ mod tests {
         let _ = j.open().expect("opens");
         assert!((j.measured_jp().expect("measured") - JAW_OPEN_RAD).abs() < 1e-12);
         let _ = j.close().expect("closes");
-        assert_eq!(*j.commands.lock().expect("lock"), vec![JAW_OPEN_RAD, JAW_CLOSED_RAD]);
+        assert_eq!(
+            *j.commands.lock().expect("lock"),
+            vec![JAW_OPEN_RAD, JAW_CLOSED_RAD]
+        );
         assert!(j.move_jp(f64::NAN).is_err());
     }
 }

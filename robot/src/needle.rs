@@ -22,7 +22,10 @@ pub struct Needle {
 
 impl Default for Needle {
     fn default() -> Self {
-        Self { radius_m: NEEDLE_RADIUS_M, wire_diameter_m: NEEDLE_WIRE_DIAMETER_M }
+        Self {
+            radius_m: NEEDLE_RADIUS_M,
+            wire_diameter_m: NEEDLE_WIRE_DIAMETER_M,
+        }
     }
 }
 
@@ -48,12 +51,19 @@ impl Needle {
                 why: format!("{radius_m} m; expected 0.001 to 0.05 m"),
             });
         }
-        Ok(Self { radius_m, ..Self::default() })
+        Ok(Self {
+            radius_m,
+            ..Self::default()
+        })
     }
 
     /// The point of the arc at `angle_rad` from the tip (0) towards the swage (π), needle frame.
     pub fn point_at(&self, angle_rad: f64) -> Point {
-        Point::new(self.radius_m * angle_rad.cos(), self.radius_m * angle_rad.sin(), 0.0)
+        Point::new(
+            self.radius_m * angle_rad.cos(),
+            self.radius_m * angle_rad.sin(),
+            0.0,
+        )
     }
 
     /// The tip, needle frame.

@@ -26,8 +26,8 @@ pub struct Workspace {
 impl Workspace {
     /// A box; `min` must be below `max` on every axis and both finite.
     pub fn new(min: Point, max: Point) -> Result<Self, RobotError> {
-        let ok = min.iter().chain(max.iter()).all(|v| v.is_finite())
-            && (0..3).all(|i| min[i] < max[i]);
+        let ok =
+            min.iter().chain(max.iter()).all(|v| v.is_finite()) && (0..3).all(|i| min[i] < max[i]);
         if ok {
             Ok(Self { min, max })
         } else {
@@ -56,7 +56,14 @@ impl Workspace {
 fn finite_pose(arm: &str, p: &Pose) -> Result<(), RobotError> {
     let ok = p.translation.vector.iter().all(|v| v.is_finite())
         && p.rotation.quaternion().coords.iter().all(|v| v.is_finite());
-    if ok { Ok(()) } else { Err(RobotError::NonFinite { arm: arm.into(), what: "goal pose".into() }) }
+    if ok {
+        Ok(())
+    } else {
+        Err(RobotError::NonFinite {
+            arm: arm.into(),
+            what: "goal pose".into(),
+        })
+    }
 }
 
 /// Keeps an arm's goals inside a [`Workspace`].
@@ -70,7 +77,11 @@ pub struct WorkspaceLimit<A> {
 impl<A: Arm> WorkspaceLimit<A> {
     /// Wrap `inner`.
     pub fn new(inner: A, workspace: Workspace, policy: LimitPolicy) -> Self {
-        Self { inner, workspace, policy }
+        Self {
+            inner,
+            workspace,
+            policy,
+        }
     }
 
     /// The wrapped arm.
@@ -175,7 +186,9 @@ impl<A: Arm> SpeedLimit<A> {
     }
 
     fn last(&self) -> std::sync::MutexGuard<'_, Option<(Duration, Pose)>> {
-        self.last_servo.lock().unwrap_or_else(PoisonError::into_inner)
+        self.last_servo
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
     }
 }
 
@@ -200,7 +213,10 @@ impl<A: Arm> Arm for SpeedLimit<A> {
         let now = self.clock.now();
         let (prev_t, prev) = match *self.last() {
             Some(last) => last,
-            None => (now.saturating_sub(self.nominal_period), self.inner.setpoint_cp()?),
+            None => (
+                now.saturating_sub(self.nominal_period),
+                self.inner.setpoint_cp()?,
+            ),
         };
         let dt = now.saturating_sub(prev_t).as_secs_f64();
         let step = goal.translation.vector - prev.translation.vector;
@@ -219,9 +235,19 @@ impl<A: Arm> Arm for SpeedLimit<A> {
         ] {
             if speed > limit {
                 if self.policy == LimitPolicy::Error {
-                    return Err(RobotError::TooFast { arm: self.inner.name().into(), what, speed, limit, unit });
+                    return Err(RobotError::TooFast {
+                        arm: self.inner.name().into(),
+                        what,
+                        speed,
+                        limit,
+                        unit,
+                    });
                 }
-                scale = scale.min(if speed.is_finite() { limit / speed } else { 0.0 });
+                scale = scale.min(if speed.is_finite() {
+                    limit / speed
+                } else {
+                    0.0
+                });
             }
         }
         let sent = if scale < 1.0 {
@@ -256,11 +282,15 @@ mod tests {
     use nalgebra::Translation3;
 
     fn at(x: f64, y: f64, z: f64) -> Pose {
-        Pose::from_parts(Translation3::new(x, y, z), nalgebra::UnitQuaternion::identity())
+        Pose::from_parts(
+            Translation3::new(x, y, z),
+            nalgebra::UnitQuaternion::identity(),
+        )
     }
 
     fn boxed(policy: LimitPolicy) -> WorkspaceLimit<DummyArm> {
-        let ws = Workspace::new(Point::new(-0.1, -0.1, -0.2), Point::new(0.1, 0.1, 0.0)).expect("box");
+        let ws =
+            Workspace::new(Point::new(-0.1, -0.1, -0.2), Point::new(0.1, 0.1, 0.0)).expect("box");
         WorkspaceLimit::new(DummyArm::new("PSM1"), ws, policy)
     }
 
@@ -268,31 +298,53 @@ mod tests {
     fn a_goal_outside_the_box_is_refused_and_nothing_reaches_the_arm() {
         let arm = boxed(LimitPolicy::Error);
         let e = arm.move_cp(&at(0.12, 0.0, -0.1)).expect_err("outside");
-        assert!(e.to_string().starts_with("PSM1: goal (0.1200, 0.0000, -0.1000) m is outside"), "{e}");
+        assert!(
+            e.to_string()
+                .starts_with("PSM1: goal (0.1200, 0.0000, -0.1000) m is outside"),
+            "{e}"
+        );
         assert!(arm.inner().commands().is_empty());
         let _ = arm.move_cp(&at(0.05, 0.0, -0.1)).expect("inside");
-        assert_eq!(arm.inner().commands(), vec![ArmCommand::MoveCp(at(0.05, 0.0, -0.1))]);
+        assert_eq!(
+            arm.inner().commands(),
+            vec![ArmCommand::MoveCp(at(0.05, 0.0, -0.1))]
+        );
     }
 
     #[test]
     fn under_clamp_the_goal_is_brought_to_the_boundary() {
         let arm = boxed(LimitPolicy::Clamp);
         arm.servo_cp(&at(0.3, -0.5, 0.2)).expect("clamped");
-        assert_eq!(arm.inner().commands(), vec![ArmCommand::ServoCp(at(0.1, -0.1, 0.0))]);
+        assert_eq!(
+            arm.inner().commands(),
+            vec![ArmCommand::ServoCp(at(0.1, -0.1, 0.0))]
+        );
     }
 
     #[test]
     fn non_finite_goals_are_always_refused() {
         let arm = boxed(LimitPolicy::Clamp);
-        assert!(matches!(arm.servo_cp(&at(f64::NAN, 0.0, 0.0)), Err(RobotError::NonFinite { .. })));
+        assert!(matches!(
+            arm.servo_cp(&at(f64::NAN, 0.0, 0.0)),
+            Err(RobotError::NonFinite { .. })
+        ));
         assert!(arm.inner().commands().is_empty());
         assert!(Workspace::new(Point::new(0.0, 0.0, 0.0), Point::new(0.0, 1.0, 1.0)).is_err());
     }
 
     fn limited(policy: LimitPolicy) -> (SpeedLimit<DummyArm>, SimClock) {
         let clock = SimClock::new();
-        let limits = SpeedLimits { linear_m_per_s: 0.05, angular_rad_per_s: 1.0 };
-        let arm = SpeedLimit::new(DummyArm::new("PSM2"), Arc::new(clock.clone()), limits, policy).expect("limits");
+        let limits = SpeedLimits {
+            linear_m_per_s: 0.05,
+            angular_rad_per_s: 1.0,
+        };
+        let arm = SpeedLimit::new(
+            DummyArm::new("PSM2"),
+            Arc::new(clock.clone()),
+            limits,
+            policy,
+        )
+        .expect("limits");
         (arm, clock)
     }
 
@@ -303,10 +355,14 @@ mod tests {
         clock.advance(Duration::from_millis(100));
         // 1 cm in 0.1 s = 0.1 m/s against 0.05 m/s.
         let e = arm.servo_cp(&at(0.01, 0.0, 0.0)).expect_err("too fast");
-        assert!(matches!(e, RobotError::TooFast { what: "linear", .. }), "{e}");
+        assert!(
+            matches!(e, RobotError::TooFast { what: "linear", .. }),
+            "{e}"
+        );
         assert_eq!(arm.inner().commands().len(), 1);
         // 4 mm in 0.1 s is fine.
-        arm.servo_cp(&at(0.004, 0.0, 0.0)).expect("within the limit");
+        arm.servo_cp(&at(0.004, 0.0, 0.0))
+            .expect("within the limit");
     }
 
     #[test]
@@ -326,7 +382,9 @@ mod tests {
         let (arm, _) = limited(LimitPolicy::Error);
         let _ = arm.move_cp(&at(0.0, 0.05, 0.0)).expect("moves");
         let cmds = arm.inner().commands();
-        assert!(matches!(cmds[0], ArmCommand::SetMaxSpeed(l) if (l.linear_m_per_s - 0.05).abs() < 1e-12));
+        assert!(
+            matches!(cmds[0], ArmCommand::SetMaxSpeed(l) if (l.linear_m_per_s - 0.05).abs() < 1e-12)
+        );
         assert!(matches!(cmds[1], ArmCommand::MoveCp(_)));
     }
 }

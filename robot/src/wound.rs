@@ -40,7 +40,12 @@ impl Default for WoundSpec {
     /// 5 mm half bite (a 10 mm bite, inside the 24 mm chord of the 12 mm needle), centred at
     /// a point in a dVRK PSM's reach below its remote centre of motion.
     fn default() -> Self {
-        Self { origin: Point::new(0.0, 0.0, -0.12), count: 6, spacing_m: 0.008, half_bite_m: 0.005 }
+        Self {
+            origin: Point::new(0.0, 0.0, -0.12),
+            count: 6,
+            spacing_m: 0.008,
+            half_bite_m: 0.005,
+        }
     }
 }
 
@@ -48,12 +53,20 @@ impl Wound {
     /// The sites of a straight wound; entry at −x, exit at +x of the centre line, the i-th at
     /// `origin.y + i · spacing`.
     pub fn linear(spec: &WoundSpec) -> Result<Wound, RobotError> {
-        let bad = |why: String| Err(RobotError::InvalidConfig { what: "wound".into(), why });
+        let bad = |why: String| {
+            Err(RobotError::InvalidConfig {
+                what: "wound".into(),
+                why,
+            })
+        };
         if !(1..=20).contains(&spec.count) {
             return bad(format!("{} points; expected 1 to 20", spec.count));
         }
         if !(spec.spacing_m.is_finite() && spec.spacing_m > 0.0 && spec.spacing_m <= 0.05) {
-            return bad(format!("spacing {} m; expected more than 0 and at most 0.05 m", spec.spacing_m));
+            return bad(format!(
+                "spacing {} m; expected more than 0 and at most 0.05 m",
+                spec.spacing_m
+            ));
         }
         if !(spec.half_bite_m.is_finite() && spec.half_bite_m > 0.0 && spec.half_bite_m <= 0.02) {
             return bad(format!(
@@ -99,7 +112,12 @@ mod tests {
 
     #[test]
     fn a_linear_wound_puts_entries_and_exits_on_either_edge() {
-        let spec = WoundSpec { origin: Point::new(0.01, 0.02, -0.1), count: 3, spacing_m: 0.008, half_bite_m: 0.005 };
+        let spec = WoundSpec {
+            origin: Point::new(0.01, 0.02, -0.1),
+            count: 3,
+            spacing_m: 0.008,
+            half_bite_m: 0.005,
+        };
         let w = Wound::linear(&spec).expect("valid");
         assert_eq!(w.len(), 3);
         assert_eq!(w.points[2].index, 2);
@@ -109,9 +127,25 @@ mod tests {
 
     #[test]
     fn bad_specs_are_refused_with_the_reason() {
-        let e = Wound::linear(&WoundSpec { count: 0, ..WoundSpec::default() }).expect_err("0 points");
+        let e = Wound::linear(&WoundSpec {
+            count: 0,
+            ..WoundSpec::default()
+        })
+        .expect_err("0 points");
         assert_eq!(e.to_string(), "invalid wound: 0 points; expected 1 to 20");
-        assert!(Wound::linear(&WoundSpec { spacing_m: f64::NAN, ..WoundSpec::default() }).is_err());
-        assert!(Wound::linear(&WoundSpec { half_bite_m: -1.0, ..WoundSpec::default() }).is_err());
+        assert!(
+            Wound::linear(&WoundSpec {
+                spacing_m: f64::NAN,
+                ..WoundSpec::default()
+            })
+            .is_err()
+        );
+        assert!(
+            Wound::linear(&WoundSpec {
+                half_bite_m: -1.0,
+                ..WoundSpec::default()
+            })
+            .is_err()
+        );
     }
 }
