@@ -294,3 +294,13 @@ fn the_journal_records_transitions_with_simulated_time() {
     // insert 25 s + extract 30 s + handover 25 s of simulated time.
     assert!((run.report.duration_s - 80.0).abs() < 1e-9);
 }
+
+#[test]
+fn an_unvalidated_plan_with_an_empty_throw_still_runs_the_throws_after_it() {
+    let mut plan = plan_from(&[SENSING_ONLY; 3], budgets(5, 5, 0));
+    plan.throws[1].steps.clear();
+    let run = run_scripted(plan, vec![], vec![], vec![]);
+    assert_eq!(run.report.outcome, RunOutcome::Completed);
+    let throws: Vec<usize> = run.primitives.calls.iter().map(|c| c.throw).collect();
+    assert_eq!(throws, vec![0, 0, 0, 2, 2, 2]);
+}

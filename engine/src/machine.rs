@@ -119,41 +119,42 @@ impl Mission {
             .map(|s| &s.kind)
     }
 
-    /// The state that attempts the step at `c`, or `completed` past the last step.
-    fn step_state(&self, c: Cursor) -> State {
-        match self.kind(c) {
-            Some(StepKind::Insert(_)) => State::inserting(c),
-            Some(StepKind::Sweep(_)) => State::sweeping(c),
-            Some(StepKind::Extract(_)) => State::extracting(c),
-            Some(StepKind::Cinch(_)) => State::cinching(c),
-            Some(StepKind::Handover(_)) => State::handing_over(c),
-            Some(StepKind::Correct(_)) => State::correcting(c),
-            Some(StepKind::EstimateNeedle(_) | StepKind::TrackThread(_)) => State::perceiving(c),
-            None => State::completed(),
+    /// The state that attempts the step at `c`; a cursor past the end of its throw moves on
+    /// to the first step of the next non-empty throw (validation refuses empty throws, but the
+    /// machine must not stop early on a plan built some other way); past the last throw,
+    /// `completed`.
+    fn step_state(&self, mut c: Cursor) -> State {
+        loop {
+            let Some(throw) = self.plan.throws.get(c.throw) else {
+                return State::completed();
+            };
+            let Some(step) = throw.steps.get(c.step) else {
+                c = Cursor {
+                    throw: c.throw + 1,
+                    step: 0,
+                    retries: 0,
+                };
+                continue;
+            };
+            return match step.kind {
+                StepKind::Insert(_) => State::inserting(c),
+                StepKind::Sweep(_) => State::sweeping(c),
+                StepKind::Extract(_) => State::extracting(c),
+                StepKind::Cinch(_) => State::cinching(c),
+                StepKind::Handover(_) => State::handing_over(c),
+                StepKind::Correct(_) => State::correcting(c),
+                StepKind::EstimateNeedle(_) | StepKind::TrackThread(_) => State::perceiving(c),
+            };
         }
     }
 
     /// The step after `c`: the next in the throw, the first of the next throw, or `completed`.
     fn next_state(&self, c: Cursor) -> State {
-        let steps = self.plan.throws.get(c.throw).map_or(0, |t| t.steps.len());
-        let next = if c.step + 1 < steps {
-            Cursor {
-                throw: c.throw,
-                step: c.step + 1,
-                retries: 0,
-            }
-        } else {
-            Cursor {
-                throw: c.throw + 1,
-                step: 0,
-                retries: 0,
-            }
-        };
-        if next.throw >= self.plan.throws.len() {
-            State::completed()
-        } else {
-            self.step_state(next)
-        }
+        self.step_state(Cursor {
+            throw: c.throw,
+            step: c.step + 1,
+            retries: 0,
+        })
     }
 
     /// The hard-capped retry budget of the step at `c`.
@@ -259,7 +260,6 @@ impl Mission {
     #[state]
     fn ready(&mut self, context: &mut Ctx, event: &Event) -> Outcome<State> {
         match event {
-            Event::Start if self.plan.throws.is_empty() => Transition(State::completed()),
             Event::Start => Transition(self.step_state(Cursor::default())),
             Event::Supervisor(c @ (SupervisorCommand::Abort | SupervisorCommand::EStop)) => {
                 context.journal.push(Entry::Supervisor {
