@@ -41,7 +41,7 @@ const EXIT_CODES: &str = "Exit codes:
 
 /// Autonomous suturing missions on the dVRK, under a surgeon's supervision.
 #[derive(Debug, Parser)]
-#[command(name = "stitch", version, about, after_help = EXIT_CODES)]
+#[command(name = "stitch", version, after_help = EXIT_CODES)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
