@@ -11,7 +11,8 @@ mod validate;
 
 pub use journal::{AbortCause, Entry, Journal, Record, RunOutcome};
 pub use machine::{
-    Ctx, Cursor, Effect, Event, Mission, State, recovery_condition, state_label, state_parts,
+    Ctx, Cursor, Effect, Event, Mission, Pending, State, pending, recovery_condition, state_label,
+    state_parts,
 };
 pub use plan::{
     FailureClass, NeedleHolder, Plan, PlanError, PlanErrors, SourcePos, Step, Throw, caps,

@@ -529,6 +529,40 @@ impl Mission {
     }
 }
 
+/// What the machine waits for in a state: what its driver (the runner, or the explorer)
+/// must do next.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Pending {
+    /// Dispatch [`Event::Start`].
+    Start,
+    /// Ask the supervisor for a command, then attempt the step at the cursor and dispatch
+    /// its outcome.
+    Attempt(Cursor),
+    /// Ask the supervisor to intervene for the step at the cursor; dispatch the result.
+    Intervention(Cursor, FailureClass),
+    /// Wait for the supervisor's next command (paused or taken over).
+    Command(Cursor),
+    /// Nothing: the run is over.
+    Done,
+}
+
+/// What the machine waits for in `state`.
+pub fn pending(state: &State) -> Pending {
+    match state {
+        State::Ready {} => Pending::Start,
+        State::Inserting { cursor }
+        | State::Sweeping { cursor }
+        | State::Extracting { cursor }
+        | State::Cinching { cursor }
+        | State::HandingOver { cursor }
+        | State::Correcting { cursor }
+        | State::Perceiving { cursor } => Pending::Attempt(*cursor),
+        State::AwaitingIntervention { cursor, class } => Pending::Intervention(*cursor, *class),
+        State::Paused { cursor } | State::TakenOver { cursor } => Pending::Command(*cursor),
+        State::Completed {} | State::Failed { .. } | State::Aborted { .. } => Pending::Done,
+    }
+}
+
 /// A state's name with its cursor, as the journal writes it: `extracting(t1 s3 r0)` (throw
 /// and step 1-based, retries so far).
 pub fn state_label(state: &State) -> String {

@@ -3,7 +3,9 @@
 //! summary.
 
 use crate::journal::{Entry, Journal, RunOutcome};
-use crate::machine::{Ctx, Cursor, Effect, Event, Mission, State, state_label, state_parts};
+use crate::machine::{
+    Ctx, Cursor, Effect, Event, Mission, Pending, State, pending, state_label, state_parts,
+};
 use crate::plan::Plan;
 use crate::supervisor::{InterventionRequest, InterventionResult, Supervisor};
 use serde::Serialize;
@@ -137,26 +139,23 @@ impl<'a> Runner<'a> {
 
     /// Run to the end: completed, failed or aborted.
     pub fn run(mut self) -> Report {
-        self.dispatch(Event::Start);
         loop {
-            let state = self.machine.state().clone();
-            let (name, cursor) = state_parts(&state);
-            match (&state, cursor) {
-                (State::Completed {} | State::Failed { .. } | State::Aborted { .. }, _) => break,
-                (State::Ready {}, _) => self.dispatch(Event::Start),
-                (State::Paused { .. } | State::TakenOver { .. }, _) => {
+            match pending(self.machine.state()) {
+                Pending::Done => break,
+                Pending::Start => self.dispatch(Event::Start),
+                Pending::Command(_) => {
                     let event = match self.supervisor.wait() {
                         Some(command) => Event::Supervisor(command),
                         None => Event::SupervisorLost,
                     };
                     self.dispatch(event);
                 }
-                (State::AwaitingIntervention { class, .. }, Some(c)) => {
+                Pending::Intervention(c, class) => {
                     let request = InterventionRequest {
                         throw: c.throw,
                         step: c.step,
                         primitive: self.step_name(c),
-                        class: *class,
+                        class,
                     };
                     let result = self.supervisor.intervene(&request);
                     if let Some(t) = self.throws.get_mut(c.throw) {
@@ -167,15 +166,14 @@ impl<'a> Runner<'a> {
                     }
                     self.dispatch(Event::InterventionFinished(result));
                 }
-                (_, Some(c)) => {
-                    // A step state: the supervisor may speak before the attempt.
+                Pending::Attempt(c) => {
+                    // The supervisor may speak before every attempt.
                     if let Some(command) = self.supervisor.poll(self.attempts_started) {
                         self.dispatch(Event::Supervisor(command));
                         continue;
                     }
                     self.attempt(c);
                 }
-                (_, None) => unreachable_state(name),
             }
         }
         self.finish()
