@@ -10,8 +10,8 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::Arc;
 use stitch_engine::{
-    Loaded, OutcomeSchedule, PlanLoader, Report, RunOutcome, Runner, ScriptLimits,
-    ScriptedSupervisor, load_plan_str,
+    ExploreOptions, Loaded, OutcomeSchedule, PlanErrors, PlanLoader, Report, RunOutcome, Runner,
+    ScriptLimits, ScriptedSupervisor, explore, mermaid, validate,
 };
 use stitch_primitives::{OutcomeModel, ScriptedPrimitives};
 use stitch_robot::{SimClock, Wound, WoundSpec};
@@ -54,6 +54,23 @@ enum Command {
     Check {
         /// The plan script (Rhai), e.g. scripts/stitch.rhai.
         plan: PathBuf,
+        /// Also explore every outcome branch of the plan through the engine's state machine
+        /// and check its safety properties; print the shortest counterexample of any that
+        /// fails. An invalid plan is explored too, to show the paths its problems bite on.
+        #[arg(long)]
+        explore: bool,
+        /// Supervisor commands (pause, take-over, abort, ...) allowed on one explored path.
+        #[arg(long, default_value_t = ExploreOptions::default().max_commands, requires = "explore")]
+        max_commands: u8,
+        /// Write each counterexample's outcome schedule here (FILE, or FILE-2.json, ... for
+        /// more than one), to replay with `stitch run PLAN --outcomes FILE`.
+        #[arg(long, requires = "explore")]
+        counterexample: Option<PathBuf>,
+        /// Write the explored state diagram (Mermaid) into this Markdown file, between the
+        /// lines `<!-- BEGIN GENERATED STATE DIAGRAM -->` and `<!-- END GENERATED STATE
+        /// DIAGRAM -->`.
+        #[arg(long, requires = "explore")]
+        diagram: Option<PathBuf>,
         #[command(flatten)]
         wound: WoundArgs,
     },
@@ -78,6 +95,11 @@ enum Command {
         /// Print the final outcome as JSON instead of the timeline.
         #[arg(long)]
         json: bool,
+        /// Run the plan even if validation refuses it, to replay a counterexample that
+        /// `stitch check --explore` found for an invalid plan. Scripted robot only: nothing
+        /// moves. The validation errors are still printed.
+        #[arg(long)]
+        skip_validation: bool,
         #[command(flatten)]
         wound: WoundArgs,
     },
@@ -113,13 +135,73 @@ fn main() -> ExitCode {
 
 fn run(cli: Cli) -> anyhow::Result<u8> {
     match cli.command {
-        Command::Check { plan, wound } => {
+        Command::Check {
+            plan,
+            explore: false,
+            wound,
+            ..
+        } => {
             let Some(loaded) = load(&plan, &wound)? else {
                 return Ok(exit::INVALID_PLAN);
             };
             print!("{}", show::plan_tree(&loaded.plan));
             println!("valid: {} throws, nothing ran", loaded.plan.throws.len());
             Ok(exit::OK)
+        }
+        Command::Check {
+            plan,
+            explore: true,
+            max_commands,
+            counterexample,
+            diagram,
+            wound,
+        } => {
+            let (loaded, errors) = evaluate(&plan, &wound)?;
+            if let Some(errors) = &errors {
+                eprintln!("{errors}");
+            }
+            let Some(loaded) = loaded else {
+                return Ok(exit::INVALID_PLAN);
+            };
+            let options = ExploreOptions {
+                max_commands,
+                ..ExploreOptions::default()
+            };
+            let found = explore(Arc::new(loaded.plan.clone()), options.clone());
+            print!(
+                "{}",
+                show::exploration(&plan, &found, &options, errors.is_none())
+            );
+            let mut n = 0;
+            for verdict in found.verdicts.iter().filter(|v| !v.holds) {
+                if let (Some(path), Some(schedule)) = (&counterexample, &verdict.schedule) {
+                    n += 1;
+                    let path = if n == 1 {
+                        path.clone()
+                    } else {
+                        path.with_file_name(format!(
+                            "{}-{n}.json",
+                            path.file_stem().unwrap_or_default().to_string_lossy()
+                        ))
+                    };
+                    std::fs::write(&path, serde_json::to_string_pretty(schedule)? + "\n")
+                        .with_context(|| format!("cannot write {}", path.display()))?;
+                    println!(
+                        "wrote the counterexample for \"{}\" to {}",
+                        verdict.says,
+                        path.display()
+                    );
+                }
+            }
+            if let Some(file) = diagram {
+                write_diagram(&file, &mermaid(&found.edges))?;
+                println!("wrote the state diagram into {}", file.display());
+            }
+            Ok(if errors.is_none() && found.all_hold() {
+                exit::OK
+            } else {
+                exit::INVALID_PLAN
+            })
         }
         Command::Run {
             plan,
@@ -128,9 +210,20 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
             journal,
             outcomes,
             json,
+            skip_validation,
             wound,
         } => {
-            let Some(loaded) = load(&plan, &wound)? else {
+            let loaded = if skip_validation && robot == RobotKind::Scripted {
+                let (loaded, errors) = evaluate(&plan, &wound)?;
+                if let Some(errors) = errors {
+                    eprintln!("{errors}");
+                    eprintln!("running anyway (--skip-validation, scripted robot: nothing moves)");
+                }
+                loaded
+            } else {
+                load(&plan, &wound)?
+            };
+            let Some(loaded) = loaded else {
                 return Ok(exit::INVALID_PLAN);
             };
             let report = match robot {
@@ -144,6 +237,10 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
                     .write_jsonl(std::io::BufWriter::new(file))
                     .with_context(|| format!("cannot write the journal to {}", path.display()))?;
             }
+            let source = match &outcomes {
+                Some(file) => format!("replaying {}", file.display()),
+                None => format!("seed {seed}"),
+            };
             let mut out = std::io::stdout().lock();
             if json {
                 serde_json::to_writer_pretty(&mut out, &report.outcome)?;
@@ -152,7 +249,7 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
                 write!(
                     out,
                     "{}",
-                    show::timeline(&loaded.plan, &report, seed, robot_name(robot))
+                    show::timeline(&loaded.plan, &report, &source, robot_name(robot))
                 )?;
             }
             Ok(match report.outcome {
@@ -172,6 +269,38 @@ fn robot_name(robot: RobotKind) -> &'static str {
 
 /// Load and validate; print plan errors one per line and return `None` if invalid.
 fn load(path: &Path, wound: &WoundArgs) -> anyhow::Result<Option<Loaded>> {
+    let (loaded, errors) = evaluate(path, wound)?;
+    if let Some(errors) = errors {
+        eprintln!("{errors}");
+        return Ok(None);
+    }
+    Ok(loaded)
+}
+
+/// The start and end markers of the generated diagram in a Markdown file.
+pub const DIAGRAM_BEGIN: &str = "<!-- BEGIN GENERATED STATE DIAGRAM -->";
+/// See [`DIAGRAM_BEGIN`].
+pub const DIAGRAM_END: &str = "<!-- END GENERATED STATE DIAGRAM -->";
+
+fn write_diagram(file: &Path, diagram: &str) -> anyhow::Result<()> {
+    let text =
+        std::fs::read_to_string(file).with_context(|| format!("cannot read {}", file.display()))?;
+    let (Some(a), Some(b)) = (text.find(DIAGRAM_BEGIN), text.find(DIAGRAM_END)) else {
+        anyhow::bail!(
+            "{} has no {DIAGRAM_BEGIN} … {DIAGRAM_END} block",
+            file.display()
+        );
+    };
+    let block = format!("{DIAGRAM_BEGIN}\n```mermaid\n{diagram}```\n");
+    let new = format!("{}{block}{}", &text[..a], &text[b..]);
+    std::fs::write(file, new).with_context(|| format!("cannot write {}", file.display()))
+}
+
+/// Evaluate the script; validate the plan if it evaluated. Evaluation errors leave no plan.
+fn evaluate(
+    path: &Path,
+    wound: &WoundArgs,
+) -> anyhow::Result<(Option<Loaded>, Option<PlanErrors>)> {
     let spec = WoundSpec {
         count: wound.wound_points,
         spacing_m: wound.wound_spacing_mm * 1e-3,
@@ -181,18 +310,15 @@ fn load(path: &Path, wound: &WoundArgs) -> anyhow::Result<Option<Loaded>> {
     let loader = PlanLoader::new(&wound, ScriptLimits::default());
     let source = std::fs::read_to_string(path)
         .with_context(|| format!("cannot read the plan {}", path.display()))?;
-    match load_plan_str(&loader, &path.display().to_string(), &source) {
-        Ok(loaded) => {
-            for line in &loaded.printed {
-                eprintln!("{}: {line}", path.display());
-            }
-            Ok(Some(loaded))
-        }
-        Err(errors) => {
-            eprintln!("{errors}");
-            Ok(None)
-        }
+    let loaded = match loader.eval_str(&path.display().to_string(), &source) {
+        Ok(loaded) => loaded,
+        Err(e) => return Ok((None, Some(e.into()))),
+    };
+    for line in &loaded.printed {
+        eprintln!("{}: {line}", path.display());
     }
+    let errors = validate(&loaded.plan).err();
+    Ok((Some(loaded), errors))
 }
 
 fn run_scripted(loaded: &Loaded, seed: u64, outcomes: Option<&Path>) -> anyhow::Result<Report> {

@@ -95,9 +95,9 @@ fn outcome_text(o: &StepOutcome) -> String {
 }
 
 /// A per-throw timeline of a run and its final outcome.
-pub fn timeline(plan: &Plan, report: &Report, seed: u64, robot: &str) -> String {
+pub fn timeline(plan: &Plan, report: &Report, source: &str, robot: &str) -> String {
     let mut s = String::new();
-    let _ = writeln!(s, "{} on {robot}, seed {seed}", plan.name);
+    let _ = writeln!(s, "{} on {robot}, {source}", plan.name);
     for (i, t) in report.throws.iter().enumerate() {
         if t.attempts.is_empty() {
             continue;
@@ -168,5 +168,69 @@ pub fn timeline(plan: &Plan, report: &Report, seed: u64, robot: &str) -> String 
         plan.interventions.min(caps::INTERVENTIONS),
         report.duration_s
     );
+    s
+}
+
+/// The verdicts of an exploration, with the shortest counterexample of each failed property.
+pub fn exploration(
+    plan_file: &std::path::Path,
+    found: &stitch_engine::Exploration,
+    options: &stitch_engine::ExploreOptions,
+    valid: bool,
+) -> String {
+    let mut s = String::new();
+    let paths = if found.paths == u128::MAX {
+        "more than 3.4e38".to_string()
+    } else {
+        format!("{:.3e}", found.paths as f64)
+    };
+    let _ = writeln!(
+        s,
+        "explored {}: {} states, {paths} complete paths, farthest state {} choices away, in {:.2} s",
+        plan_file.display(),
+        found.states,
+        found.max_depth,
+        found.elapsed.as_secs_f64()
+    );
+    let outcomes: Vec<&str> = options.outcomes.iter().map(|t| t.as_str()).collect();
+    let _ = writeln!(
+        s,
+        "  branching on every step outcome ({}), every intervention result, and up to {} \
+         supervisor commands per path",
+        outcomes.join(", "),
+        options.max_commands
+    );
+    for v in &found.verdicts {
+        let mark = if v.holds { "ok  " } else { "FAIL" };
+        let _ = writeln!(s, "  {mark} {}", v.says);
+        if v.holds {
+            continue;
+        }
+        match &v.path {
+            Some(path) => {
+                let n = path.len();
+                let _ = writeln!(
+                    s,
+                    "       shortest counterexample, {n} choice{}:",
+                    if n == 1 { "" } else { "s" }
+                );
+                for (i, (state, action)) in path.iter().enumerate() {
+                    let _ = writeln!(s, "       {:>3}. in {state}: {action}", i + 1);
+                }
+                if let Some(schedule) = &v.schedule {
+                    let json = serde_json::to_string(schedule).unwrap_or_default();
+                    let _ = writeln!(
+                        s,
+                        "       replay: stitch run {} --outcomes FILE{}, FILE holding\n       {json}",
+                        plan_file.display(),
+                        if valid { "" } else { " --skip-validation" }
+                    );
+                }
+            }
+            None => {
+                let _ = writeln!(s, "       no path reaches it");
+            }
+        }
+    }
     s
 }

@@ -167,3 +167,48 @@ fn a_missing_plan_file_exits_one_with_the_reason() {
         text(&out.stderr)
     );
 }
+
+#[test]
+fn explore_checks_every_property_of_the_stitch_plan() {
+    let out = stitch(&["check", "scripts/stitch.rhai", "--explore"]);
+    assert_eq!(out.status.code(), Some(0), "{}", text(&out.stderr));
+    let s = text(&out.stdout);
+    assert!(s.starts_with("explored scripts/stitch.rhai: "), "{s}");
+    assert!(s.contains("ok   no motion after abort or e-stop"), "{s}");
+    assert!(
+        s.contains("ok   every path ends in completed, failed or aborted"),
+        "{s}"
+    );
+    assert!(!s.contains("FAIL"), "{s}");
+}
+
+#[test]
+fn explore_rejects_an_unsafe_order_with_the_path_and_a_replayable_schedule() {
+    let cx = tmp("cx.json");
+    let out = stitch(&[
+        "check",
+        "engine/tests/counterexamples/no_handover.rhai",
+        "--explore",
+        "--counterexample",
+        cx.to_str().expect("utf-8"),
+    ]);
+    assert_eq!(out.status.code(), Some(3));
+    let s = text(&out.stdout);
+    assert!(
+        s.contains("FAIL never insert unless the inserting jaw holds the needle"),
+        "{s}"
+    );
+    assert!(s.contains("5. in inserting(t2 s1 r0): ok"), "{s}");
+    assert!(text(&out.stderr).contains("throw 2: insert needs the needle in the right"));
+    let replay = stitch(&[
+        "run",
+        "engine/tests/counterexamples/no_handover.rhai",
+        "--outcomes",
+        cx.to_str().expect("utf-8"),
+        "--skip-validation",
+    ]);
+    assert_eq!(replay.status.code(), Some(5), "{}", text(&replay.stdout));
+    let r = text(&replay.stdout);
+    assert!(r.contains("replaying"), "{r}");
+    assert!(r.contains("aborted (Abort) before throw 2 step 2"), "{r}");
+}

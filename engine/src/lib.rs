@@ -1,5 +1,6 @@
 #![doc = include_str!("../README.md")]
 
+mod explore;
 mod journal;
 mod machine;
 mod plan;
@@ -9,6 +10,10 @@ mod script;
 mod supervisor;
 mod validate;
 
+pub use explore::{
+    Action, EngineModel, Exploration, ExploreOptions, ExploreState, Needle, PROPERTY_NAMES,
+    Verdict, Violation, World, explore, mermaid, schedule_of,
+};
 pub use journal::{AbortCause, Entry, Journal, Record, RunOutcome};
 pub use machine::{
     Ctx, Cursor, Effect, Event, Mission, Pending, State, pending, recovery_condition, state_label,
