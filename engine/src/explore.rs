@@ -236,15 +236,6 @@ impl EngineModel {
         &self.plan
     }
 
-    fn kind(&self, c: Cursor) -> Option<&StepKind> {
-        self.plan
-            .throws
-            .get(c.throw)?
-            .steps
-            .get(c.step)
-            .map(|s| &s.kind)
-    }
-
     /// Where the step at `c` needs the needle (perception queries need nothing).
     fn needs(kind: &StepKind) -> Option<Needle> {
         match kind {
@@ -413,7 +404,7 @@ impl Model for EngineModel {
                 if s.world.stopped {
                     s.world.violate(Violation::MotionAfterStop);
                 }
-                let kind = *self.kind(c)?;
+                let kind = *last.machine.inner().step_kind(c)?;
                 if s.world.step != Some((c.throw, c.step)) {
                     s.world.step = Some((c.throw, c.step));
                     s.world.attempts = 0;
@@ -451,10 +442,15 @@ impl Model for EngineModel {
                 if result == InterventionResult::Recovered {
                     // The surgeon returns the workspace to a safe configuration: the needle
                     // where the failed step needs it, the step's attempts counted afresh.
-                    let needed = self.kind(c).and_then(Self::needs).or_else(|| {
-                        let h = self.holders.get(c.throw)?.get(c.step).copied().flatten()?;
-                        Some(h.into())
-                    });
+                    let needed = last
+                        .machine
+                        .inner()
+                        .step_kind(c)
+                        .and_then(Self::needs)
+                        .or_else(|| {
+                            let h = self.holders.get(c.throw)?.get(c.step).copied().flatten()?;
+                            Some(h.into())
+                        });
                     s.world.needle = needed.unwrap_or(Needle::Right);
                     s.world.attempts = 0;
                 }

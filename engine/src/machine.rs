@@ -110,7 +110,8 @@ impl Mission {
         self.last_failure.as_ref()
     }
 
-    fn kind(&self, c: Cursor) -> Option<&StepKind> {
+    /// The step at `c`, if there is one.
+    pub fn step_kind(&self, c: Cursor) -> Option<&StepKind> {
         self.plan
             .throws
             .get(c.throw)?
@@ -159,7 +160,7 @@ impl Mission {
 
     /// The hard-capped retry budget of the step at `c`.
     pub fn retry_cap(&self, c: Cursor) -> u8 {
-        self.kind(c)
+        self.step_kind(c)
             .and_then(|k| Some(k.retries()?.min(crate::validate::retry_cap(k)?.0)))
             .unwrap_or(0)
     }
@@ -183,9 +184,13 @@ impl Mission {
         };
         self.last_failure = Some(failure.clone());
         let class = self.classify(c, &failure.kind);
-        let name = self.kind(c).map_or("?", StepKind::name).to_string();
+        let name = self.step_kind(c).map_or("?", StepKind::name).to_string();
         let cap = self.retry_cap(c);
-        if self.kind(c).is_some_and(|k| recovery_condition(k, failure)) && c.retries < cap {
+        if self
+            .step_kind(c)
+            .is_some_and(|k| recovery_condition(k, failure))
+            && c.retries < cap
+        {
             let retries = c.retries + 1;
             ctx.journal.push(Entry::Retry {
                 throw: c.throw,
@@ -241,6 +246,20 @@ pub fn recovery_condition(kind: &StepKind, failure: &Failure) -> bool {
     }
 }
 
+/// Abort or e-stop: journal the command and end the run at `cursor`.
+fn stop(ctx: &mut Ctx, command: SupervisorCommand, cursor: Cursor) -> Outcome<State> {
+    ctx.journal.push(Entry::Supervisor {
+        command,
+        acted: true,
+    });
+    let by = if command == SupervisorCommand::EStop {
+        AbortCause::EStop
+    } else {
+        AbortCause::Abort
+    };
+    Transition(State::aborted(cursor, by))
+}
+
 fn supervisor_ignored(ctx: &mut Ctx, command: SupervisorCommand) -> Outcome<State> {
     ctx.journal.push(Entry::Supervisor {
         command,
@@ -262,16 +281,7 @@ impl Mission {
         match event {
             Event::Start => Transition(self.step_state(Cursor::default())),
             Event::Supervisor(c @ (SupervisorCommand::Abort | SupervisorCommand::EStop)) => {
-                context.journal.push(Entry::Supervisor {
-                    command: *c,
-                    acted: true,
-                });
-                let by = if *c == SupervisorCommand::EStop {
-                    AbortCause::EStop
-                } else {
-                    AbortCause::Abort
-                };
-                Transition(State::aborted(Cursor::default(), by))
+                stop(context, *c, Cursor::default())
             }
             Event::Supervisor(c) => supervisor_ignored(context, *c),
             _ => Handled,
@@ -474,16 +484,7 @@ impl Mission {
     fn supervised(cursor: &mut Cursor, context: &mut Ctx, event: &Event) -> Outcome<State> {
         match event {
             Event::Supervisor(c @ (SupervisorCommand::Abort | SupervisorCommand::EStop)) => {
-                context.journal.push(Entry::Supervisor {
-                    command: *c,
-                    acted: true,
-                });
-                let by = if *c == SupervisorCommand::EStop {
-                    AbortCause::EStop
-                } else {
-                    AbortCause::Abort
-                };
-                Transition(State::aborted(*cursor, by))
+                stop(context, *c, *cursor)
             }
             Event::Supervisor(c) => supervisor_ignored(context, *c),
             Event::SupervisorLost => {
