@@ -1,1 +1,25 @@
 #![doc = include_str!("../README.md")]
+
+mod phantom;
+mod streams;
+mod world;
+
+pub use phantom::{
+    Breach, HOLE_TOLERANCE_M, Hole, MIN_PROTRUSION_M, PassScore, Phantom, PhantomGeometry,
+};
+pub use streams::{Streams, Subsystem};
+pub use world::{MockArm, MockDvrk, MockJaw, NeedleTruth, PsmConfig, Side, nearest_on_needle};
+
+/// Errors of the mock dVRK.
+#[derive(Clone, Debug, PartialEq, thiserror::Error, serde::Serialize)]
+#[non_exhaustive]
+pub enum SimError {
+    /// A configuration value the mock cannot use.
+    #[error("invalid mock configuration {what}: {why}")]
+    Config {
+        /// Which value.
+        what: String,
+        /// Why.
+        why: String,
+    },
+}
