@@ -1,1 +1,60 @@
 #![doc = include_str!("../README.md")]
+
+use serde::{Deserialize, Serialize};
+use std::time::Duration;
+use stitch_robot::{Needle, Point, Pose, Vector};
+
+/// A needle pose estimate in the robot frame.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct NeedleEstimate {
+    /// The needle frame (centre at the origin, normal +z, tip at +x·r, swage at −x·r), robot
+    /// frame, m.
+    pub pose: Pose,
+    /// How sure the estimator is, 0 to 1.
+    pub confidence: f64,
+    /// When the images it came from were taken, on the run's clock.
+    pub stamp: Duration,
+}
+
+impl NeedleEstimate {
+    /// Centre, normal, tip and swage in the robot frame for a needle of this model.
+    pub fn features(&self, needle: &Needle) -> (Point, Vector, Point, Point) {
+        let g = needle.in_world(&self.pose);
+        (g.center, g.normal, g.tip, g.swage)
+    }
+}
+
+/// Why there is no estimate: never a made-up pose.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, thiserror::Error)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+#[non_exhaustive]
+pub enum PerceptionError {
+    /// The needle was not found in the images.
+    #[error("no needle in view")]
+    NotFound,
+    /// The needle is hidden (by the thread, a jaw, tissue).
+    #[error("needle occluded{}", if *by_thread { " by the thread" } else { "" })]
+    Occluded {
+        /// Whether the thread hides it.
+        by_thread: bool,
+    },
+    /// The fit was too poor to act on.
+    #[error("estimate too uncertain (confidence {confidence:.2})")]
+    Uncertain {
+        /// The fit's confidence, 0 to 1.
+        confidence: f64,
+    },
+    /// The camera failed.
+    #[error("camera: {message}")]
+    Camera {
+        /// What it said.
+        message: String,
+    },
+}
+
+/// Estimates the needle's pose. Implementations: the mock dVRK's noise model, and the stereo
+/// pipeline. Each call may take time on the run's clock.
+pub trait NeedleEstimator: Send {
+    /// One estimate from the current view.
+    fn estimate_needle(&mut self) -> Result<NeedleEstimate, PerceptionError>;
+}

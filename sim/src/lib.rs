@@ -2,13 +2,18 @@
 
 mod phantom;
 mod streams;
+mod thread;
 mod world;
 
 pub use phantom::{
     Breach, HOLE_TOLERANCE_M, Hole, MIN_PROTRUSION_M, PassScore, Phantom, PhantomGeometry,
 };
 pub use streams::{Streams, Subsystem};
-pub use world::{MockArm, MockDvrk, MockJaw, NeedleTruth, PsmConfig, Side, nearest_on_needle};
+pub use thread::{Thread, ThreadConfig};
+pub use world::{
+    GRASP_MIN_CROSSING_RAD, JAW_LENGTH_M, MockArm, MockDvrk, MockJaw, NeedleTruth, PsmConfig,
+    SceneConfig, Side, grasp_in_needle_frame, jaw_reaches_needle, nearest_on_needle,
+};
 
 /// Errors of the mock dVRK.
 #[derive(Clone, Debug, PartialEq, thiserror::Error, serde::Serialize)]

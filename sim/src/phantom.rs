@@ -207,21 +207,17 @@ impl Phantom {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use stitch_robot::WoundSpec;
 
     fn phantom() -> Phantom {
-        // Entry at (-5, 0, 0) mm, exit at (5, 0, 0) mm.
-        let spec = WoundSpec {
-            origin: Point::new(0.0, 0.0, 0.0),
-            count: 1,
-            spacing_m: 0.008,
-            half_bite_m: 0.005,
+        // Entry at (-5, 0, 0) mm, exit at (5, 0, 0) mm: the needle travels along +x.
+        let wound = Wound {
+            points: vec![WoundPoint {
+                index: 0,
+                entry: Point::new(-0.005, 0.0, 0.0),
+                exit: Point::new(0.005, 0.0, 0.0),
+            }],
         };
-        Phantom::new(
-            Wound::linear(&spec).expect("wound"),
-            PhantomGeometry::default(),
-        )
-        .expect("phantom")
+        Phantom::new(wound, PhantomGeometry::default()).expect("phantom")
     }
 
     fn line(from: Point, to: Point, n: usize) -> Vec<Point> {

@@ -3,15 +3,19 @@
 //! [`stitch_robot::Jaw`] implementations that share this world.
 
 use crate::SimError;
+use crate::phantom::{Phantom, PhantomGeometry};
 use crate::streams::{Streams, Subsystem};
+use crate::thread::{Thread, ThreadConfig};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 use std::time::Duration;
+use stitch_robot::nalgebra::Rotation3;
 use stitch_robot::nalgebra::{Translation3, UnitQuaternion};
 use stitch_robot::{
-    Arm, Jaw, MoveHandle, Needle, Point, Pose, RobotError, SimClock, SpeedLimits, Vector,
+    Arm, Jaw, MoveHandle, Needle, Point, Pose, RobotError, SimClock, SpeedLimits, Vector, Wound,
+    WoundSpec,
 };
 
 /// Which needle driver.
@@ -162,6 +166,75 @@ struct State {
     /// The needle tip's true positions since the last [`MockDvrk::take_tip_path`], m.
     tip_path: Vec<Point>,
     grasp_rng: ChaCha8Rng,
+    phantom: Phantom,
+    thread: Thread,
+    thread_rng: ChaCha8Rng,
+    /// The wound point whose tissue holds the needle, if any.
+    lodged: Option<usize>,
+    /// The wound point the needle last went into.
+    last_point: Option<usize>,
+}
+
+/// Where things are at the start, and the models' parameters. Poses in the robot frame, m.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SceneConfig {
+    /// The PSMs' limits and the grasp model.
+    pub psm: PsmConfig,
+    /// The needle (the paper's 12 mm half circle by default).
+    pub needle: Needle,
+    /// The wound's points.
+    pub wound: WoundSpec,
+    /// The raised edges around the holes.
+    pub phantom: PhantomGeometry,
+    /// The thread model.
+    pub thread: ThreadConfig,
+    /// The right tool tip's start, m (modelling choice: above the wound's right side).
+    pub right_home: [f64; 3],
+    /// The left tool tip's start, m (the paper: "the upper left edge of the workspace").
+    pub left_home: [f64; 3],
+    /// Where along the arc the right jaw first holds the needle, rad from the tip (modelling
+    /// choice: 150°, near the swage, leaving the tip free).
+    pub grasp_angle_rad: f64,
+}
+
+impl Default for SceneConfig {
+    fn default() -> Self {
+        Self {
+            psm: PsmConfig::default(),
+            needle: Needle::default(),
+            wound: WoundSpec::default(),
+            phantom: PhantomGeometry::default(),
+            thread: ThreadConfig::default(),
+            right_home: [0.03, 0.0, -0.09],
+            left_home: [-0.04, 0.02, -0.09],
+            grasp_angle_rad: 150f64.to_radians(),
+        }
+    }
+}
+
+/// The length of a jaw's blades: a closing jaw grasps what lies along this segment, from the
+/// tool tip back along the tool's −z axis (dVRK large needle driver: about 9 mm), m.
+pub const JAW_LENGTH_M: f64 = 0.009;
+/// A closing jaw grasps the wire only across it: not if the jaw lies within this angle of the
+/// wire's direction (modelling choice), rad.
+pub const GRASP_MIN_CROSSING_RAD: f64 = 20.0 * std::f64::consts::PI / 180.0;
+/// A right-arm move with the jaw opened at least this wide, mostly along +y near the wound,
+/// is a thread sweep (modelling choice), rad.
+const SWEEP_MIN_JAW_RAD: f64 = 40.0 * std::f64::consts::PI / 180.0;
+
+/// The tool pose, in the needle frame, of a jaw holding the needle at `angle` along the arc
+/// with the jaw across the needle's plane (tool z = −needle normal, tool x = the wire's
+/// direction towards the swage).
+pub fn grasp_in_needle_frame(needle: &Needle, angle: f64) -> Pose {
+    let p = needle.point_at(angle);
+    let x = Vector::new(-angle.sin(), angle.cos(), 0.0);
+    let z = -Vector::z();
+    let y = z.cross(&x);
+    let r = Rotation3::from_basis_unchecked(&[x, y, z]);
+    Pose::from_parts(
+        Translation3::from(p.coords),
+        UnitQuaternion::from_rotation_matrix(&r),
+    )
 }
 
 /// The mock dVRK.
@@ -177,20 +250,37 @@ const MIN_SAMPLES: usize = 8;
 const SAMPLE_SPACING_M: f64 = 0.0005;
 
 impl MockDvrk {
-    /// A world with both arms at `home` poses, the needle held by the right jaw through
-    /// `grasp` (the needle frame in the right tool frame), and this seed's streams.
-    pub fn new(
-        config: PsmConfig,
-        needle_model: Needle,
-        home: [Pose; 2],
-        grasp: Pose,
-        streams: Streams,
-        clock: SimClock,
-    ) -> Result<Self, SimError> {
-        config.validate()?;
+    /// A world laid out by `scene`: both arms at their homes (tool frames aligned with the
+    /// robot frame), the needle in the right jaw at `scene.grasp_angle_rad`, this seed's
+    /// streams, time from `clock`.
+    pub fn new(scene: &SceneConfig, streams: Streams, clock: SimClock) -> Result<Self, SimError> {
+        scene.psm.validate()?;
+        let wound = Wound::linear(&scene.wound).map_err(|e| SimError::Config {
+            what: "wound".into(),
+            why: e.to_string(),
+        })?;
+        let phantom = Phantom::new(wound, scene.phantom)?;
+        let thread = Thread::new(scene.thread)?;
+        let at = |p: [f64; 3]| {
+            Pose::from_parts(
+                Translation3::new(p[0], p[1], p[2]),
+                UnitQuaternion::identity(),
+            )
+        };
+        let home = [at(scene.right_home), at(scene.left_home)];
+        if !home
+            .iter()
+            .all(|h| h.translation.vector.iter().all(|v| v.is_finite()))
+        {
+            return Err(SimError::Config {
+                what: "home".into(),
+                why: "not finite".into(),
+            });
+        }
+        let grasp = grasp_in_needle_frame(&scene.needle, scene.grasp_angle_rad).inverse();
         let speed = SpeedLimits {
-            linear_m_per_s: config.max_linear_m_per_s,
-            angular_rad_per_s: config.max_angular_rad_per_s,
+            linear_m_per_s: scene.psm.max_linear_m_per_s,
+            angular_rad_per_s: scene.psm.max_angular_rad_per_s,
         };
         let psm = |p: Pose| Psm {
             setpoint: p,
@@ -198,23 +288,57 @@ impl MockDvrk {
             speed,
             commands: 0,
         };
-        let needle = NeedleTruth {
-            pose: home[0] * grasp,
-            grips: [Some(grasp), None],
-            dropped: false,
-        };
+        let pose = home[0] * grasp;
         let state = State {
-            config,
+            config: scene.psm,
             psms: [psm(home[0]), psm(home[1])],
-            needle_model,
-            tip_path: vec![(home[0] * grasp) * needle_model.tip()],
-            needle,
+            needle_model: scene.needle,
+            tip_path: vec![pose * scene.needle.tip()],
+            needle: NeedleTruth {
+                pose,
+                grips: [Some(grasp), None],
+                dropped: false,
+            },
             grasp_rng: streams.rng(Subsystem::Grasp),
+            phantom,
+            thread,
+            thread_rng: streams.rng(Subsystem::Thread),
+            lodged: None,
+            last_point: None,
         };
         Ok(Self {
             state: Arc::new(Mutex::new(state)),
             clock,
         })
+    }
+
+    /// The phantom.
+    pub fn phantom(&self) -> Phantom {
+        self.lock().phantom.clone()
+    }
+
+    /// The thread's state.
+    pub fn thread(&self) -> Thread {
+        self.lock().thread.clone()
+    }
+
+    /// The wound point whose tissue holds the needle, if any.
+    pub fn lodged(&self) -> Option<usize> {
+        self.lock().lodged
+    }
+
+    /// Record that a throw ended without a cinch: its thread stays slack.
+    pub fn throw_ended_uncinched(&self) {
+        self.lock().thread.on_uncinched();
+    }
+
+    /// Record a cinch leaving `beta_m` of free thread.
+    pub fn cinched(&self, beta_m: f64) {
+        let mut s = self.lock();
+        let State {
+            thread, thread_rng, ..
+        } = &mut *s;
+        thread.on_cinch(beta_m, thread_rng);
     }
 
     fn lock(&self) -> MutexGuard<'_, State> {
@@ -301,6 +425,20 @@ impl MockDvrk {
             // The other jaw cannot hold a needle that moved away from it: it slips out.
             let other = side.other().index();
             s.needle.grips[other] = None;
+            s.lodged = tissue_holding(&s);
+        } else if side == Side::Right && s.psms[0].jaw_rad >= SWEEP_MIN_JAW_RAD {
+            let d = goal.translation.vector - start.translation.vector;
+            let near = s.last_point.is_some_and(|i| {
+                let p = &s.phantom.wound.points[i];
+                let mid = (p.entry.coords + p.exit.coords) / 2.0;
+                (start.translation.vector - mid).xz().norm() < 0.015
+            });
+            if near && d.y > 0.01 && d.x.abs() < 0.005 && d.z.abs() < 0.005 {
+                let State {
+                    thread, thread_rng, ..
+                } = &mut *s;
+                thread.on_sweep(thread_rng);
+            }
         }
         let psm = &mut s.psms[side.index()];
         psm.setpoint = *goal;
@@ -329,15 +467,34 @@ impl MockDvrk {
         s.psms[i].jaw_rad = angle_rad;
         s.psms[i].commands += 1;
         if angle_rad > before {
-            // Opening lets go. Whether a needle no jaw holds rests in tissue or falls is the
-            // phantom's to say, not the jaw's.
+            // Opening lets go. A needle no jaw holds stays if tissue holds it, else it falls.
+            let held_before = s.needle.grips.iter().any(Option::is_some);
             s.needle.grips[i] = None;
-        } else if angle_rad < before && s.needle.grips[i].is_none() && !s.needle.dropped {
-            // Closing: grasp the needle if the jaw tip is on its wire.
+            if held_before && s.needle.grips.iter().all(Option::is_none) {
+                match tissue_holding(&s) {
+                    Some(point) => {
+                        if s.lodged.is_none() || s.last_point != Some(point) {
+                            let State {
+                                thread, thread_rng, ..
+                            } = &mut *s;
+                            thread.on_insertion(thread_rng);
+                        }
+                        s.lodged = Some(point);
+                        s.last_point = Some(point);
+                    }
+                    None => s.needle.dropped = true,
+                }
+            }
+        } else if angle_rad < before && !s.needle.dropped {
             let tool = s.psms[i].setpoint;
-            let jaw_tip = tool * Point::origin();
-            let (_, distance) = nearest_on_needle(&s.needle_model, &s.needle.pose, &jaw_tip);
-            if distance <= s.config.grasp_tolerance_m {
+            if s.needle.grips[i].is_none()
+                && jaw_reaches_needle(
+                    &s.needle_model,
+                    &s.needle.pose,
+                    &tool,
+                    s.config.grasp_tolerance_m,
+                )
+            {
                 let (sigma_p, sigma_r) = (
                     s.config.grasp_position_sigma_m,
                     s.config.grasp_rotation_sigma_rad,
@@ -347,11 +504,72 @@ impl MockDvrk {
                 s.needle.grips[i] = Some(grasp);
                 s.needle.pose = tool * grasp;
             }
+            if s.lodged.is_some() {
+                // Closing in the re-grasp region may catch thread lying there.
+                let State {
+                    thread, thread_rng, ..
+                } = &mut *s;
+                thread.on_grasp(thread_rng);
+            }
         }
         drop(s);
         self.clock.advance(Duration::from_secs_f64(secs));
         Ok(())
     }
+}
+
+/// Samples of the needle's arc, world frame.
+fn arc_points(needle: Needle, pose: Pose) -> impl Iterator<Item = Point> {
+    (0..=48).map(move |k| pose * needle.point_at(std::f64::consts::PI * f64::from(k) / 48.0))
+}
+
+/// The wound point whose tissue some part of the needle is in, if any.
+fn tissue_holding(s: &State) -> Option<usize> {
+    let g = s.phantom.geometry;
+    let half_gap = s
+        .phantom
+        .wound
+        .points
+        .windows(2)
+        .map(|w| (w[1].entry - w[0].entry).norm() / 2.0)
+        .fold(0.004, f64::min);
+    s.phantom.wound.points.iter().position(|wp| {
+        let (entry, exit) = s.phantom.holes(wp);
+        let top = wp.entry.z.max(wp.exit.z) + g.top_above_hole_m;
+        let bottom = wp.entry.z.min(wp.exit.z) - g.bottom_below_hole_m;
+        arc_points(s.needle_model, s.needle.pose).any(|p| {
+            entry.distance(&p) < 0.0
+                && exit.distance(&p) < 0.0
+                && (p.y - wp.entry.y).abs() <= half_gap
+                && p.z <= top
+                && p.z >= bottom
+        })
+    })
+}
+
+/// Whether a closing jaw at `tool` grasps the needle: some point of the wire lies within
+/// `tolerance` of the blades (the segment from the tool tip back along −z, [`JAW_LENGTH_M`]
+/// long), and the blades cross the wire there at more than [`GRASP_MIN_CROSSING_RAD`].
+pub fn jaw_reaches_needle(
+    needle: &Needle,
+    needle_pose: &Pose,
+    tool: &Pose,
+    tolerance: f64,
+) -> bool {
+    let a = tool * Point::origin();
+    let axis = tool * -Vector::z();
+    let b = a + axis * JAW_LENGTH_M;
+    (0..=96).any(|k| {
+        let angle = std::f64::consts::PI * f64::from(k) / 96.0;
+        let p = needle_pose * needle.point_at(angle);
+        let t = ((p - a).dot(&(b - a)) / JAW_LENGTH_M.powi(2)).clamp(0.0, 1.0);
+        let distance = (p - (a + (b - a) * t)).norm();
+        let wire = needle_pose * Vector::new(-angle.sin(), angle.cos(), 0.0);
+        let crossing = axis.angle(&wire);
+        distance <= tolerance
+            && crossing > GRASP_MIN_CROSSING_RAD
+            && crossing < std::f64::consts::PI - GRASP_MIN_CROSSING_RAD
+    })
 }
 
 /// The point of the needle's arc nearest to `p`, and its distance, m.
@@ -446,102 +664,117 @@ mod tests {
     use super::*;
     use stitch_robot::{Clock, JAW_OPEN_RAD};
 
-    fn at(x: f64, y: f64, z: f64) -> Pose {
-        Pose::from_parts(Translation3::new(x, y, z), UnitQuaternion::identity())
+    fn world(seed: u64, sigma: f64) -> MockDvrk {
+        let scene = SceneConfig {
+            psm: PsmConfig {
+                grasp_position_sigma_m: sigma,
+                grasp_rotation_sigma_rad: sigma,
+                ..PsmConfig::default()
+            },
+            ..SceneConfig::default()
+        };
+        MockDvrk::new(&scene, Streams::new(seed), SimClock::new()).expect("world")
     }
 
-    fn world(sigma: f64) -> MockDvrk {
-        let config = PsmConfig {
-            grasp_position_sigma_m: sigma,
-            grasp_rotation_sigma_rad: sigma,
-            ..PsmConfig::default()
-        };
-        // The needle's swage end in the right jaw: the tool tip at the swage.
-        let grasp = at(0.012, 0.0, 0.0);
-        MockDvrk::new(
-            config,
-            Needle::default(),
-            [at(0.0, 0.0, 0.0), at(0.05, 0.0, 0.0)],
-            grasp,
-            Streams::new(1),
-            SimClock::new(),
-        )
-        .expect("world")
+    fn moved(p: &Pose, by: Vector) -> Pose {
+        Pose::from_parts(Translation3::from(p.translation.vector + by), p.rotation)
     }
 
     #[test]
     fn a_move_takes_time_by_distance_and_speed_and_carries_the_needle() {
-        let w = world(0.0);
-        let _ = w
-            .arm(Side::Right)
-            .move_cp(&at(0.0, 0.02, 0.0))
+        let w = world(1, 0.0);
+        let arm = w.arm(Side::Right);
+        let start = arm.setpoint_cp().expect("pose");
+        let needle_before = w.needle_truth().pose;
+        let _ = w.take_tip_path();
+        let _ = arm
+            .move_cp(&moved(&start, Vector::new(0.0, 0.02, 0.0)))
             .expect("moves");
         // 2 cm at 2 cm/s.
         assert_eq!(w.clock().now(), Duration::from_secs(1));
-        let truth = w.needle_truth();
-        assert!((truth.pose.translation.vector - Vector::new(0.012, 0.02, 0.0)).norm() < 1e-12);
+        let after = w.needle_truth().pose;
+        let shift = after.translation.vector - needle_before.translation.vector;
+        assert!((shift - Vector::new(0.0, 0.02, 0.0)).norm() < 1e-12);
         let path = w.take_tip_path();
         assert!(path.len() >= 41, "sampled every 0.5 mm: {}", path.len());
-        // The tip (needle frame +x·r) is 12 mm beyond the needle frame origin.
-        assert!((path.last().expect("tip") - Point::new(0.024, 0.02, 0.0)).norm() < 1e-12);
+        let tip = after * Needle::default().tip();
+        assert!((path.last().expect("tip") - tip).norm() < 1e-12);
     }
 
     #[test]
     fn rotations_take_time_by_angle() {
-        let w = world(0.0);
+        let w = world(1, 0.0);
+        let arm = w.arm(Side::Right);
+        let start = arm.setpoint_cp().expect("pose");
         let goal = Pose::from_parts(
-            Translation3::identity(),
+            start.translation,
             UnitQuaternion::from_euler_angles(0.0, 0.0, 0.25),
         );
-        let _ = w.arm(Side::Right).move_cp(&goal).expect("turns");
+        let _ = arm.move_cp(&goal).expect("turns");
         assert!((w.clock().now().as_secs_f64() - 0.5).abs() < 1e-9);
     }
 
+    /// The left tool placed across the wire at `angle` along the arc, shifted by `off`.
+    fn left_across(w: &MockDvrk, angle: f64, off: Vector) -> Pose {
+        let n = w.needle_truth().pose;
+        moved(&(n * grasp_in_needle_frame(&Needle::default(), angle)), off)
+    }
+
     #[test]
-    fn a_closing_jaw_on_the_wire_grasps_and_one_off_it_does_not() {
-        let w = world(0.0);
-        let left = w.arm(Side::Left);
-        let jaw = w.jaw(Side::Left);
+    fn a_jaw_closing_across_the_wire_grasps_and_one_beside_it_does_not() {
+        let w = world(1, 0.0);
+        let (left, jaw) = (w.arm(Side::Left), w.jaw(Side::Left));
         let _ = jaw.open().expect("opens");
-        // The needle's arc top is at (0.012, 0.012, 0) in the world: 1 mm off it grasps.
-        let _ = left.move_cp(&at(0.012, 0.013, 0.0)).expect("moves");
+        let _ = left
+            .move_cp(&left_across(&w, 0.5, Vector::new(0.0, 0.0, 0.001)))
+            .expect("moves");
         let _ = jaw.close().expect("closes");
         assert!(w.needle_truth().held_by(Side::Left));
-        // Opening the right jaw now leaves it in the left.
+        // The right lets go: the left keeps it, nothing falls.
         let _ = w.jaw(Side::Right).move_jp(JAW_OPEN_RAD).expect("opens");
         let t = w.needle_truth();
-        assert!(t.held_by(Side::Left) && !t.held_by(Side::Right));
+        assert!(t.held_by(Side::Left) && !t.held_by(Side::Right) && !t.dropped);
 
-        let w = world(0.0);
+        let w = world(1, 0.0);
         let _ = w.jaw(Side::Left).open().expect("opens");
+        let n = w.needle_truth().pose;
+        // 4 mm out of the needle's plane, beyond the blades' reach.
+        let off = n * Vector::new(0.0, 0.0, 0.004 + JAW_LENGTH_M);
         let _ = w
             .arm(Side::Left)
-            .move_cp(&at(0.012, 0.016, 0.0))
+            .move_cp(&left_across(&w, 0.5, off))
             .expect("moves");
         let _ = w.jaw(Side::Left).close().expect("closes");
-        assert!(
-            !w.needle_truth().held_by(Side::Left),
-            "4 mm off the wire misses"
+        assert!(!w.needle_truth().held_by(Side::Left));
+    }
+
+    #[test]
+    fn a_jaw_along_the_wire_does_not_grasp() {
+        let w = world(1, 0.0);
+        let n = w.needle_truth().pose;
+        // Blades pointing along the wire's direction at the tip (+y of the needle frame).
+        let at_tip = n * Needle::default().tip();
+        let along =
+            UnitQuaternion::rotation_between(&-Vector::z(), &(n * Vector::y())).expect("rotation");
+        let tool = Pose::from_parts(
+            Translation3::from((at_tip + n * Vector::y() * 0.002).coords),
+            along,
         );
+        // Within 0.5 mm the blades only touch the wire where it runs along them.
+        assert!(!jaw_reaches_needle(&Needle::default(), &n, &tool, 0.0005));
+        // The same spot with the blades across the wire grasps.
+        let across = n * grasp_in_needle_frame(&Needle::default(), 0.0);
+        assert!(jaw_reaches_needle(&Needle::default(), &n, &across, 0.0005));
     }
 
     #[test]
     fn each_grasp_perturbs_the_needle_by_the_seeded_stream() {
         let grasp_after = |seed| {
-            let config = PsmConfig::default();
-            let w = MockDvrk::new(
-                config,
-                Needle::default(),
-                [at(0.0, 0.0, 0.0), at(0.05, 0.0, 0.0)],
-                at(0.012, 0.0, 0.0),
-                Streams::new(seed),
-                SimClock::new(),
-            )
-            .expect("world");
+            let w = world(seed, 0.001);
             let _ = w.jaw(Side::Left).open().expect("opens");
             let _ = w
                 .arm(Side::Left)
-                .move_cp(&at(0.012, 0.012, 0.0))
+                .move_cp(&left_across(&w, 0.5, Vector::zeros()))
                 .expect("moves");
             let _ = w.jaw(Side::Left).close().expect("closes");
             w.needle_truth().grips[1].expect("held")
@@ -551,9 +784,41 @@ mod tests {
     }
 
     #[test]
+    fn a_needle_let_go_in_the_air_falls_and_one_let_go_in_tissue_stays() {
+        let w = world(1, 0.0);
+        let _ = w.jaw(Side::Right).open().expect("opens");
+        assert!(w.needle_truth().dropped);
+
+        let w = world(1, 0.0);
+        // The needle's plane vertical along x, its arc's middle at wound point 1's midpoint.
+        let r = Rotation3::from_basis_unchecked(&[Vector::x(), -Vector::z(), Vector::y()]);
+        let wanted = Pose::from_parts(
+            Translation3::new(0.0, 0.0, -0.12 + 0.012),
+            UnitQuaternion::from_rotation_matrix(&r),
+        );
+        let grasp = w.needle_truth().grips[0].expect("held");
+        let _ = w
+            .arm(Side::Right)
+            .move_cp(&(wanted * grasp.inverse()))
+            .expect("moves");
+        let _ = w.jaw(Side::Right).open().expect("opens");
+        let t = w.needle_truth();
+        assert!(!t.dropped);
+        assert_eq!(w.lodged(), Some(0));
+        assert!(
+            (w.thread().used_m - 0.02).abs() < 1e-12,
+            "one suture's thread"
+        );
+    }
+
+    #[test]
     fn bad_commands_are_refused_without_moving() {
-        let w = world(0.0);
-        assert!(w.arm(Side::Right).move_cp(&at(f64::NAN, 0.0, 0.0)).is_err());
+        let w = world(1, 0.0);
+        let bad = Pose::from_parts(
+            Translation3::new(f64::NAN, 0.0, 0.0),
+            UnitQuaternion::identity(),
+        );
+        assert!(w.arm(Side::Right).move_cp(&bad).is_err());
         assert!(w.jaw(Side::Right).move_jp(3.0).is_err());
         assert_eq!(w.clock().now(), Duration::ZERO);
         assert!(
