@@ -15,9 +15,11 @@ const fn deg(d: f64) -> f64 {
 // --- Needle Insertion ("Augmented Dexterity Suturing Motion Controller / Needle Insertion")
 /// Rotation about the estimated circle normal that drives the needle through the tissue (45°).
 pub const INSERT_ROTATION_RAD: f64 = deg(45.0);
-/// Straight push of the tip along entry→exit before the rotation. The paper gives no number;
-/// modelling choice (4 mm), to be calibrated on the mock.
-pub const INSERT_PUSH_M: f64 = 0.004;
+/// Straight push of the tip along entry→exit before the rotation. The paper gives no number.
+/// Chosen from the geometry (a modelling choice): with the 12 mm needle, a 10 mm bite and the
+/// 45° rotation, the tip ends p + 12·sin 45° − 10 mm beyond the exit, so the SRC's 5 mm
+/// protrusion needs p ≥ 6.5 mm; 7 mm crosses the exit plane 0.38 mm from the hole.
+pub const INSERT_PUSH_M: f64 = 0.007;
 
 // --- Thread Sweeping
 /// Travel of the open jaw along +y down the wound centre. The paper gives no number; modelling

@@ -1,0 +1,711 @@
+//! The six primitives over the `robot/` traits and a needle estimator, with the paper's
+//! geometry ("Augmented Dexterity Suturing Motion Controller"). The same code drives the mock
+//! dVRK and a real one.
+//!
+//! Frames and conventions: the robot frame has +z up and +y towards the camera; the wound runs
+//! along +y; the right driver (PSM1) inserts from the entry towards the exit, the left (PSM2)
+//! extracts. A tool frame's +z points from the wrist to the jaw tip; the blades lie along −z
+//! from the tip. The needle frame is `stitch_robot::Needle`'s: centre at the origin, normal
+//! +z, tip at +x·r, swage at −x·r, the arc through +y·r.
+
+use crate::{
+    CinchParams, CorrectParams, ExtractParams, Failure, FailureKind, HandoverParams, InsertParams,
+    Measurements, PrimitiveError, Primitives, StepKind, StepOutcome, StepRequest, SweepParams,
+};
+use rand::Rng;
+use rand_chacha::ChaCha8Rng;
+use std::sync::Arc;
+use stitch_perception::{NeedleEstimate, NeedleEstimator};
+use stitch_robot::nalgebra::{Rotation3, Translation3, Unit, UnitQuaternion};
+use stitch_robot::{Arm, Jaw, Needle, Point, Pose, RobotError, Vector, WoundPoint};
+
+/// Rotations are streamed as move_cp waypoints this far apart, so the tool follows the arc
+/// closely (chord error r·(1 − cos 2.5°) ≈ 0.01 mm for the 12 mm needle), rad.
+pub const ROTATION_STEP_RAD: f64 = 5.0 * std::f64::consts::PI / 180.0;
+/// Before insertion the tip waits this far back from the entry, along entry→exit and above
+/// it, so the approach comes from outside the tissue (modelling choice), m.
+pub const INSERT_STANDOFF_M: f64 = 0.01;
+/// How far a driver backs off after letting go or after a failed grasp (modelling choice), m.
+pub const RETREAT_M: f64 = 0.02;
+/// The linear pull that finishes an extraction ("pulled out linearly"; modelling choice 3 cm
+/// away from the wound and up), m.
+pub const EXTRACT_PULL_M: f64 = 0.03;
+/// The small rotation of the right driver that tests a handover grasp: if it holds the needle,
+/// the needle's normal turns with it ("Needle Handover"; modelling choice 10°), rad.
+pub const HANDOVER_TUG_RAD: f64 = 10.0 * std::f64::consts::PI / 180.0;
+/// The longest pull a cinch makes in one motion (modelling choice: the workspace's reach), m.
+pub const CINCH_MAX_PULL_M: f64 = 0.05;
+
+/// What an observer of the real scene can tell that the robot's sensors cannot: the
+/// Surgical Robotics Challenge-style score of a needle pass, and problems such as a dropped
+/// needle or tangled thread. The mock dVRK implements it from its ground truth; on a real
+/// robot it is absent (or a person's report).
+pub trait Observer: Send {
+    /// An insertion begins: start watching the tip.
+    fn begin_pass(&mut self);
+    /// The insertion ended: how the tip went through `point`'s holes.
+    fn end_pass(&mut self, point: &WoundPoint) -> PassObservation;
+    /// A problem the scene shows now, if any: a dropped needle, thread caught, tangled or
+    /// short.
+    fn problem(&mut self) -> Option<FailureKind>;
+    /// Whether the needle is still in the tissue.
+    fn needle_in_tissue(&mut self) -> bool;
+    /// A cinch left `beta_m` of free thread.
+    fn cinched(&mut self, beta_m: f64);
+    /// A throw ended without a cinch: its thread stays slack.
+    fn uncinched(&mut self);
+}
+
+/// How a needle pass went.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PassObservation {
+    /// Lateral offset at the entry hole, m.
+    pub entry_error_m: Option<f64>,
+    /// Lateral offset at the exit hole, m.
+    pub exit_error_m: Option<f64>,
+    /// Tip beyond the exit plane, m.
+    pub protrusion_m: f64,
+    /// Whether every criterion passed.
+    pub passed: bool,
+}
+
+/// Where the primitives go in the workspace, robot frame, m.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Layout {
+    /// The lower back right corner where the needle pose is corrected ("Needle Pose
+    /// Correction": chosen for consistent estimates).
+    pub correction_point: Point,
+    /// Where the left driver waits between extractions ("the upper left edge of the
+    /// workspace").
+    pub left_ready: Point,
+    /// Where the left driver presents the needle for handover.
+    pub handover_point: Point,
+}
+
+/// The robot the primitives act on.
+pub struct Rig {
+    /// PSM1, the right needle driver.
+    pub right: Arc<dyn Arm>,
+    /// PSM2, the left needle driver.
+    pub left: Arc<dyn Arm>,
+    /// PSM1's jaw.
+    pub right_jaw: Arc<dyn Jaw>,
+    /// PSM2's jaw.
+    pub left_jaw: Arc<dyn Jaw>,
+    /// The needle pose estimator.
+    pub estimator: Box<dyn NeedleEstimator>,
+    /// What the scene shows, where something can tell (the mock's ground truth).
+    pub observer: Option<Box<dyn Observer>>,
+    /// The needle's shape.
+    pub needle: Needle,
+    /// Where things happen.
+    pub layout: Layout,
+    /// Random offsets (handover jitter), from the seed's primitives stream.
+    pub rng: ChaCha8Rng,
+}
+
+impl std::fmt::Debug for Rig {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Rig")
+            .field("needle", &self.needle)
+            .field("layout", &self.layout)
+            .finish_non_exhaustive()
+    }
+}
+
+/// The primitives over a [`Rig`].
+#[derive(Debug)]
+pub struct RobotPrimitives {
+    rig: Rig,
+    /// The needle in the right tool's frame, as the last pose correction measured it: the
+    /// next insertion uses it open loop, as the paper does.
+    corrected_grasp: Option<Pose>,
+    /// Whether the current throw has cinched its thread.
+    cinched: bool,
+    /// Whether any throw has started.
+    started: bool,
+}
+
+/// A step that cannot go on, and why.
+type Step<T> = Result<T, Failure>;
+
+fn fault(e: RobotError) -> Failure {
+    Failure {
+        kind: FailureKind::ArmFault {
+            message: e.to_string(),
+        },
+        measured: Measurements::default(),
+    }
+}
+
+fn failed(kind: FailureKind) -> Failure {
+    Failure {
+        kind,
+        measured: Measurements::default(),
+    }
+}
+
+/// A pose at `p` with rotation `r`.
+fn pose(p: Point, r: UnitQuaternion<f64>) -> Pose {
+    Pose::from_parts(Translation3::from(p.coords), r)
+}
+
+/// `t` moved by `v` (robot frame).
+fn shifted(t: &Pose, v: Vector) -> Pose {
+    Pose::from_parts(Translation3::from(t.translation.vector + v), t.rotation)
+}
+
+/// `t` rotated by `angle` about the axis through `center` along `axis` (robot frame).
+pub fn rotated_about(t: &Pose, center: &Point, axis: &Vector, angle: f64) -> Pose {
+    let Some(axis) = Unit::try_new(*axis, 1e-12) else {
+        return *t;
+    };
+    let r = UnitQuaternion::from_axis_angle(&axis, angle);
+    let p = center + r * (Point::from(t.translation.vector) - center);
+    pose(p, r * t.rotation)
+}
+
+/// The horizontal unit vector along `v`, if it has a horizontal part.
+fn horizontal(v: Vector) -> Option<Vector> {
+    Vector::new(v.x, v.y, 0.0).try_normalize(1e-9)
+}
+
+/// A tool orientation whose jaw points along `dir` (tool +z = `dir`), blades level.
+fn pointing(dir: &Vector) -> UnitQuaternion<f64> {
+    let z = dir.normalize();
+    let x = Vector::z()
+        .cross(&z)
+        .try_normalize(1e-9)
+        .unwrap_or_else(Vector::x);
+    let y = z.cross(&x);
+    UnitQuaternion::from_rotation_matrix(&Rotation3::from_basis_unchecked(&[x, y, z]))
+}
+
+/// The needle pose that starts an insertion at `entry` towards `exit`: tip at the entry,
+/// the wire there pointing along entry→exit (horizontally), the centre one radius above.
+pub fn insertion_start(needle: &Needle, entry: &Point, exit: &Point) -> Pose {
+    let u = horizontal(exit - entry).unwrap_or_else(Vector::x);
+    let up = Vector::z();
+    let x = -up;
+    let y = u;
+    let z = x.cross(&y);
+    let r = UnitQuaternion::from_rotation_matrix(&Rotation3::from_basis_unchecked(&[x, y, z]));
+    pose(entry + up * needle.radius_m, r)
+}
+
+/// The tool poses of an insertion, in order: the stand-off, the start (tip at the entry), the
+/// end of the push, then the rotation's waypoints. `grasp` is the needle in the tool frame.
+pub fn insertion_waypoints(
+    needle: &Needle,
+    grasp: &Pose,
+    point: &WoundPoint,
+    p: &InsertParams,
+) -> Vec<Pose> {
+    let start = insertion_start(needle, &point.entry, &point.exit) * grasp.inverse();
+    let u = horizontal(point.exit - point.entry).unwrap_or_else(Vector::x);
+    let standoff = shifted(
+        &start,
+        -u * INSERT_STANDOFF_M + Vector::z() * (INSERT_STANDOFF_M / 2.0),
+    );
+    let pushed = shifted(&start, u * p.push_m);
+    let needle_pushed = pushed * grasp;
+    let center = needle_pushed * Point::origin();
+    let normal = needle_pushed * Vector::z();
+    let steps = (p.rotation_rad.abs() / ROTATION_STEP_RAD).ceil().max(1.0) as usize;
+    let mut out = vec![standoff, start, pushed];
+    out.extend((1..=steps).map(|k| {
+        rotated_about(
+            &pushed,
+            &center,
+            &normal,
+            p.rotation_rad * k as f64 / steps as f64,
+        )
+    }));
+    out
+}
+
+/// The left driver's poses for an extraction grasp: the stand-off (`offset` horizontally from
+/// the re-grasp point, on the driver's side) and the end of the approach (`approach` towards
+/// and past it), jaw pointing at it.
+pub fn regrasp_waypoints(
+    regrasp: &Point,
+    from: &Point,
+    offset_m: f64,
+    approach_m: f64,
+) -> [Pose; 2] {
+    let h = horizontal(from - regrasp).unwrap_or_else(Vector::x);
+    let rot = pointing(&-h);
+    let off = regrasp + h * offset_m;
+    [pose(off, rot), pose(off - h * approach_m, rot)]
+}
+
+impl RobotPrimitives {
+    /// Primitives over `rig`.
+    pub fn new(rig: Rig) -> Self {
+        Self {
+            rig,
+            corrected_grasp: None,
+            cinched: false,
+            started: false,
+        }
+    }
+
+    /// The rig.
+    pub fn rig(&self) -> &Rig {
+        &self.rig
+    }
+
+    fn estimate(&mut self) -> Step<NeedleEstimate> {
+        self.rig
+            .estimator
+            .estimate_needle()
+            .map_err(|_| failed(FailureKind::PerceptionDropout))
+    }
+
+    fn problem(&mut self) -> Option<FailureKind> {
+        self.rig.observer.as_mut().and_then(|o| o.problem())
+    }
+
+    fn moves(arm: &Arc<dyn Arm>, poses: &[Pose]) -> Step<()> {
+        for p in poses {
+            let _ = arm.move_cp(p).map_err(fault)?;
+        }
+        Ok(())
+    }
+
+    fn insert(&mut self, point: &WoundPoint, p: &InsertParams) -> Step<Measurements> {
+        if let Some(o) = self.rig.observer.as_mut() {
+            if self.started && !self.cinched {
+                o.uncinched();
+            }
+        }
+        self.started = true;
+        self.cinched = false;
+        let tool = self.rig.right.measured_cp().map_err(fault)?;
+        let grasp = match self.corrected_grasp.take() {
+            Some(g) => g,
+            None => tool.inverse() * self.estimate()?.pose,
+        };
+        let waypoints = insertion_waypoints(&self.rig.needle, &grasp, point, p);
+        Self::moves(&self.rig.right, &waypoints[..1])?;
+        if let Some(o) = self.rig.observer.as_mut() {
+            o.begin_pass();
+        }
+        Self::moves(&self.rig.right, &waypoints[1..])?;
+        let _ = self.rig.right_jaw.open().map_err(fault)?;
+        let last = waypoints.last().copied().unwrap_or(tool);
+        Self::moves(&self.rig.right, &[shifted(&last, Vector::z() * RETREAT_M)])?;
+        let mut measured = Measurements::default();
+        if let Some(o) = self.rig.observer.as_mut() {
+            let pass = o.end_pass(point);
+            measured.entry_error_m = pass.entry_error_m;
+            measured.exit_error_m = pass.exit_error_m;
+            if let Some(kind) = o.problem() {
+                return Err(Failure { kind, measured });
+            }
+            if !pass.passed {
+                return Err(Failure {
+                    kind: FailureKind::Missed,
+                    measured,
+                });
+            }
+        }
+        Ok(measured)
+    }
+
+    fn sweep(&mut self, point: &WoundPoint, p: &SweepParams) -> Step<Measurements> {
+        let mid = Point::from((point.entry.coords + point.exit.coords) / 2.0);
+        let start = pose(
+            mid + Vector::new(0.0, 0.005, 0.004),
+            pointing(&-Vector::z()),
+        );
+        let _ = self.rig.right_jaw.move_jp(p.jaw_open_rad).map_err(fault)?;
+        Self::moves(
+            &self.rig.right,
+            &[start, shifted(&start, Vector::y() * p.distance_m)],
+        )?;
+        let _ = self.rig.right_jaw.close().map_err(fault)?;
+        let end = shifted(&start, Vector::y() * p.distance_m + Vector::z() * RETREAT_M);
+        Self::moves(&self.rig.right, &[end])?;
+        match self.problem() {
+            Some(kind) => Err(failed(kind)),
+            None => Ok(Measurements::default()),
+        }
+    }
+
+    fn extract(&mut self, p: &ExtractParams) -> Step<Measurements> {
+        let before = self.estimate()?;
+        let (center, normal, tip, swage) = before.features(&self.rig.needle);
+        let left = self.rig.left.measured_cp().map_err(fault)?;
+        let from = Point::from(left.translation.vector);
+        let (regrasp, is_tip) = if (tip - from).norm() <= (swage - from).norm() {
+            (tip, true)
+        } else {
+            (swage, false)
+        };
+        let [off, grasp] = regrasp_waypoints(&regrasp, &from, p.offset_m, p.approach_m);
+        let _ = self.rig.left_jaw.open().map_err(fault)?;
+        Self::moves(&self.rig.left, &[off, grasp])?;
+        let _ = self.rig.left_jaw.close().map_err(fault)?;
+        let steps = (p.rotation_rad.abs() / ROTATION_STEP_RAD).ceil().max(1.0) as usize;
+        let turn: Vec<Pose> = (1..=steps)
+            .map(|k| {
+                rotated_about(
+                    &grasp,
+                    &center,
+                    &normal,
+                    p.rotation_rad * k as f64 / steps as f64,
+                )
+            })
+            .collect();
+        Self::moves(&self.rig.left, &turn)?;
+        let last = turn.last().copied().unwrap_or(grasp);
+        let away = horizontal(from - regrasp).unwrap_or_else(Vector::x);
+        let pull = (away + Vector::z()).normalize() * EXTRACT_PULL_M;
+        Self::moves(&self.rig.left, &[shifted(&last, pull)])?;
+        let after = self.estimate().map_err(|mut f| {
+            // The arm holds whatever it grasped; let go so a retry starts clean.
+            let _ = self.rig.left_jaw.open();
+            f.measured.endpoint_travel_m = None;
+            f
+        })?;
+        let (_, _, tip2, swage2) = after.features(&self.rig.needle);
+        let travel = if is_tip {
+            (tip2 - tip).norm()
+        } else {
+            (swage2 - swage).norm()
+        };
+        let measured = Measurements {
+            endpoint_travel_m: Some(travel),
+            ..Measurements::default()
+        };
+        let problem = self.problem();
+        let still_in = self
+            .rig
+            .observer
+            .as_mut()
+            .is_some_and(|o| o.needle_in_tissue());
+        if let Some(kind) = problem {
+            return Err(Failure { kind, measured });
+        }
+        if still_in || travel < p.min_travel_m {
+            // Let go and back off, ready for a retry.
+            let _ = self.rig.left_jaw.open().map_err(fault)?;
+            Self::moves(&self.rig.left, &[off])?;
+            let kind = if travel < p.min_travel_m {
+                FailureKind::NoProgress
+            } else {
+                FailureKind::Missed
+            };
+            return Err(Failure { kind, measured });
+        }
+        Ok(measured)
+    }
+
+    fn cinch(&mut self, suture: usize, p: &CinchParams) -> Step<Measurements> {
+        let beta = p.beta_m(suture).max(0.0);
+        let tool = self.rig.left.measured_cp().map_err(fault)?;
+        let here = Point::from(tool.translation.vector);
+        let away =
+            horizontal(here - self.rig.layout.handover_point).unwrap_or_else(|| -Vector::x());
+        let pull = away * beta.min(CINCH_MAX_PULL_M);
+        Self::moves(&self.rig.left, &[shifted(&tool, pull)])?;
+        if let Some(o) = self.rig.observer.as_mut() {
+            o.cinched(beta);
+        }
+        self.cinched = true;
+        let present = pose(self.rig.layout.handover_point, tool.rotation);
+        Self::moves(&self.rig.left, &[present])?;
+        match self.problem() {
+            Some(kind) => Err(Failure {
+                kind,
+                measured: Measurements {
+                    thread_used_m: Some(beta),
+                    ..Measurements::default()
+                },
+            }),
+            None => Ok(Measurements {
+                thread_used_m: Some(beta),
+                ..Measurements::default()
+            }),
+        }
+    }
+
+    fn handover(&mut self, attempt: u32, p: &HandoverParams) -> Step<Measurements> {
+        let before = self.estimate()?;
+        let (_, n0, tip, swage) = before.features(&self.rig.needle);
+        let left = Point::from(
+            self.rig
+                .left
+                .measured_cp()
+                .map_err(fault)?
+                .translation
+                .vector,
+        );
+        let right = Point::from(
+            self.rig
+                .right
+                .measured_cp()
+                .map_err(fault)?
+                .translation
+                .vector,
+        );
+        let regrasp = if (tip - left).norm() >= (swage - left).norm() {
+            tip
+        } else {
+            swage
+        };
+        let h = horizontal(right - regrasp).unwrap_or_else(Vector::x);
+        let jitter = if attempt > 0 {
+            let side = Vector::z().cross(&h);
+            side * self.rig.rng.random_range(-p.jitter_m..=p.jitter_m)
+        } else {
+            Vector::zeros()
+        };
+        let target = regrasp + jitter;
+        let [off, at] = regrasp_waypoints(&target, &right, p.offset_m, p.offset_m);
+        let _ = self.rig.right_jaw.open().map_err(fault)?;
+        Self::moves(&self.rig.right, &[off, at])?;
+        let _ = self.rig.right_jaw.close().map_err(fault)?;
+        // Tug: turn the right driver a little about a horizontal axis across its approach.
+        let tug = rotated_about(&at, &target, &Vector::z().cross(&h), HANDOVER_TUG_RAD);
+        Self::moves(&self.rig.right, &[tug])?;
+        let after = self.estimate()?;
+        let n1 = after.features(&self.rig.needle).1;
+        let change = n0.angle(&n1);
+        let measured = Measurements {
+            normal_change_rad: Some(change),
+            ..Measurements::default()
+        };
+        if change <= p.normal_tolerance_rad {
+            // The grasp did not take: let go, pull back.
+            let _ = self.rig.right_jaw.open().map_err(fault)?;
+            Self::moves(&self.rig.right, &[off])?;
+            return Err(Failure {
+                kind: FailureKind::NoProgress,
+                measured,
+            });
+        }
+        let _ = self.rig.left_jaw.open().map_err(fault)?;
+        let ready = pose(self.rig.layout.left_ready, UnitQuaternion::identity());
+        Self::moves(&self.rig.left, &[ready])?;
+        match self.problem() {
+            Some(kind) => Err(Failure { kind, measured }),
+            None => Ok(measured),
+        }
+    }
+
+    fn correct(&mut self, p: &CorrectParams) -> Step<Measurements> {
+        let tool = self.rig.right.measured_cp().map_err(fault)?;
+        let first = self.estimate()?;
+        let center = first.pose * Point::origin();
+        let to_corner = shifted(&tool, self.rig.layout.correction_point - center);
+        Self::moves(&self.rig.right, &[to_corner])?;
+        // Average the samples: positions by mean, rotations by the normalised quaternion sum.
+        let mut grasps = Vec::new();
+        for _ in 0..p.samples.max(1) {
+            if let Ok(e) = self.rig.estimator.estimate_needle() {
+                grasps.push(to_corner.inverse() * e.pose);
+            }
+        }
+        if grasps.is_empty() {
+            return Err(failed(FailureKind::PerceptionDropout));
+        }
+        let grasp = mean_pose(&grasps);
+        let needle = to_corner * grasp;
+        let (c, n) = (needle * Point::origin(), needle * Vector::z());
+        let align = UnitQuaternion::rotation_between(&n, &Vector::y())
+            .unwrap_or_else(UnitQuaternion::identity);
+        let (axis, angle) = align
+            .axis_angle()
+            .map_or((Vector::y(), 0.0), |(a, t)| (a.into_inner(), t));
+        let aligned = rotated_about(&to_corner, &c, &axis, angle);
+        let turned = rotated_about(&aligned, &c, &Vector::y(), p.final_rotation_rad);
+        Self::moves(&self.rig.right, &[aligned, turned])?;
+        self.corrected_grasp = Some(grasp);
+        match self.problem() {
+            Some(kind) => Err(failed(kind)),
+            None => Ok(Measurements::default()),
+        }
+    }
+
+    fn perceive(&mut self, kind: &StepKind) -> Step<Measurements> {
+        // No thread tracer yet: for `track_thread`, what the scene shows about the thread is
+        // all there is.
+        if let StepKind::EstimateNeedle(p) = kind {
+            for _ in 0..p.samples.max(1) {
+                self.estimate()?;
+            }
+        }
+        match self.problem() {
+            Some(kind) => Err(failed(kind)),
+            None => Ok(Measurements::default()),
+        }
+    }
+}
+
+/// The mean of nearby poses: mean translation, normalised sum of sign-aligned quaternions.
+pub fn mean_pose(poses: &[Pose]) -> Pose {
+    let n = poses.len().max(1) as f64;
+    let t = poses
+        .iter()
+        .fold(Vector::zeros(), |acc, p| acc + p.translation.vector)
+        / n;
+    let first = poses
+        .first()
+        .map_or(UnitQuaternion::identity(), |p| p.rotation);
+    let sum = poses
+        .iter()
+        .fold(stitch_robot::nalgebra::Vector4::zeros(), |acc, p| {
+            let q = p.rotation.coords;
+            if q.dot(&first.coords) < 0.0 {
+                acc - q
+            } else {
+                acc + q
+            }
+        });
+    let q = stitch_robot::nalgebra::Quaternion::from(sum);
+    Pose::from_parts(Translation3::from(t), UnitQuaternion::from_quaternion(q))
+}
+
+impl Primitives for RobotPrimitives {
+    fn run(&mut self, req: &StepRequest<'_>) -> StepOutcome {
+        let result = match req.kind {
+            StepKind::Insert(p) => self.insert(req.point, p),
+            StepKind::Sweep(p) => self.sweep(req.point, p),
+            StepKind::Extract(p) => self.extract(p),
+            StepKind::Cinch(p) => self.cinch(req.throw + 1, p),
+            StepKind::Handover(p) => self.handover(req.attempt, p),
+            StepKind::Correct(p) => self.correct(p),
+            k @ (StepKind::EstimateNeedle(_) | StepKind::TrackThread(_)) => self.perceive(k),
+        };
+        match result {
+            Ok(measured) => StepOutcome::Succeeded { measured },
+            Err(failure) => StepOutcome::Failed(failure),
+        }
+    }
+
+    fn hold_all(&mut self) -> Result<(), PrimitiveError> {
+        let r = self.rig.right.hold();
+        let l = self.rig.left.hold();
+        r.and(l).map_err(|e| PrimitiveError::Robot {
+            message: e.to_string(),
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const MM: f64 = 1e-3;
+
+    fn point() -> WoundPoint {
+        WoundPoint {
+            index: 0,
+            entry: Point::new(0.005, 0.0, -0.12),
+            exit: Point::new(-0.005, 0.0, -0.12),
+        }
+    }
+
+    fn close(a: &Point, b: &Point) -> bool {
+        (a - b).norm() < 1e-9
+    }
+
+    #[test]
+    fn insertion_starts_with_the_tip_at_the_entry_pointing_at_the_exit() {
+        let needle = Needle::default();
+        let start = insertion_start(&needle, &point().entry, &point().exit);
+        assert!(close(&(start * needle.tip()), &point().entry));
+        // The wire at the tip runs along entry→exit (−x), the centre 12 mm above.
+        assert!(((start * Vector::y()) - Vector::new(-1.0, 0.0, 0.0)).norm() < 1e-12);
+        assert!(close(
+            &(start * Point::origin()),
+            &Point::new(0.005, 0.0, -0.108)
+        ));
+        // Its normal is +y, as pose correction leaves it.
+        assert!(((start * Vector::z()) - Vector::y()).norm() < 1e-12);
+    }
+
+    #[test]
+    fn insertion_waypoints_are_the_papers_push_and_45_degree_rotation() {
+        let needle = Needle::default();
+        let grasp = Pose::from_parts(
+            Translation3::new(0.003, -0.002, 0.001),
+            UnitQuaternion::from_euler_angles(0.3, -0.2, 0.1),
+        );
+        let p = InsertParams {
+            rotation_rad: 45f64.to_radians(),
+            push_m: 7.0 * MM,
+        };
+        let w = insertion_waypoints(&needle, &grasp, &point(), &p);
+        assert_eq!(w.len(), 3 + 9, "stand-off, start, push, nine 5° steps");
+        let tip = |t: &Pose| (t * grasp) * needle.tip();
+        // Stand-off: 1 cm back along entry→exit (+x here) and 5 mm up.
+        assert!(close(&tip(&w[0]), &Point::new(0.015, 0.0, -0.115)));
+        assert!(close(&tip(&w[1]), &point().entry));
+        // Push: 7 mm along entry→exit.
+        assert!(close(&tip(&w[2]), &Point::new(-0.002, 0.0, -0.12)));
+        // The rotation keeps the centre and turns the tip 45° along the arc.
+        let c = (w[2] * grasp) * Point::origin();
+        assert!(close(&((w[11] * grasp) * Point::origin()), &c));
+        let r = 0.012;
+        let expect = Point::new(
+            c.x - r * 45f64.to_radians().sin(),
+            0.0,
+            c.z - r * 45f64.to_radians().cos(),
+        );
+        assert!(close(&tip(&w[11]), &expect), "{} vs {expect}", tip(&w[11]));
+    }
+
+    #[test]
+    fn the_extraction_approach_is_one_centimetre_off_then_one_and_a_half_in() {
+        let regrasp = Point::new(-0.01, 0.0, -0.115);
+        let from = Point::new(-0.04, 0.02, -0.09);
+        let [off, at] = regrasp_waypoints(&regrasp, &from, 0.01, 0.015);
+        let h = horizontal(from - regrasp).expect("horizontal");
+        assert!(close(
+            &Point::from(off.translation.vector),
+            &(regrasp + h * 0.01)
+        ));
+        assert!(close(
+            &Point::from(at.translation.vector),
+            &(regrasp - h * 0.005)
+        ));
+        // The jaw points at the re-grasp point, level.
+        assert!(((off * Vector::z()) + h).norm() < 1e-12);
+    }
+
+    #[test]
+    fn rotating_about_an_axis_keeps_points_on_it_and_turns_the_rest() {
+        let t = Pose::from_parts(
+            Translation3::new(0.01, 0.0, 0.0),
+            UnitQuaternion::identity(),
+        );
+        let r = rotated_about(
+            &t,
+            &Point::origin(),
+            &Vector::z(),
+            std::f64::consts::FRAC_PI_2,
+        );
+        assert!(close(
+            &Point::from(r.translation.vector),
+            &Point::new(0.0, 0.01, 0.0)
+        ));
+    }
+
+    #[test]
+    fn the_mean_of_poses_averages_translation_and_rotation() {
+        let a = Pose::from_parts(
+            Translation3::new(0.0, 0.0, 0.0),
+            UnitQuaternion::from_euler_angles(0.0, 0.0, 0.1),
+        );
+        let b = Pose::from_parts(
+            Translation3::new(0.002, 0.0, 0.0),
+            UnitQuaternion::from_euler_angles(0.0, 0.0, 0.3),
+        );
+        let m = mean_pose(&[a, b]);
+        assert!((m.translation.vector.x - 0.001).abs() < 1e-12);
+        assert!((m.rotation.euler_angles().2 - 0.2).abs() < 1e-9);
+    }
+}
