@@ -1,10 +1,12 @@
 #![doc = include_str!("../README.md")]
 
+mod mock;
 mod outcome;
 mod params;
 mod robot;
 mod scripted;
 
+pub use mock::{MockObserver, mock_layout, mock_primitives};
 pub use outcome::{Failure, FailureKind, Measurements, StepOutcome};
 pub use params::*;
 pub use robot::{

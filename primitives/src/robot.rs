@@ -182,12 +182,14 @@ fn pointing(dir: &Vector) -> UnitQuaternion<f64> {
 }
 
 /// The needle pose that starts an insertion at `entry` towards `exit`: tip at the entry,
-/// the wire there pointing along entry→exit (horizontally), the centre one radius above.
+/// the needle leading with its tip along entry→exit (horizontally; the tip leads along the
+/// needle frame's −y), the centre one radius above. For a wound along +x its normal is +y,
+/// as pose correction leaves it.
 pub fn insertion_start(needle: &Needle, entry: &Point, exit: &Point) -> Pose {
     let u = horizontal(exit - entry).unwrap_or_else(Vector::x);
     let up = Vector::z();
     let x = -up;
-    let y = u;
+    let y = -u;
     let z = x.cross(&y);
     let r = UnitQuaternion::from_rotation_matrix(&Rotation3::from_basis_unchecked(&[x, y, z]));
     pose(entry + up * needle.radius_m, r)
@@ -213,12 +215,14 @@ pub fn insertion_waypoints(
     let normal = needle_pushed * Vector::z();
     let steps = (p.rotation_rad.abs() / ROTATION_STEP_RAD).ceil().max(1.0) as usize;
     let mut out = vec![standoff, start, pushed];
+    // The tip leads along −y of the needle frame, so driving it forward along its arc is a
+    // rotation about the normal by −angle.
     out.extend((1..=steps).map(|k| {
         rotated_about(
             &pushed,
             &center,
             &normal,
-            p.rotation_rad * k as f64 / steps as f64,
+            -p.rotation_rad * k as f64 / steps as f64,
         )
     }));
     out
@@ -354,7 +358,7 @@ impl RobotPrimitives {
                     &grasp,
                     &center,
                     &normal,
-                    p.rotation_rad * k as f64 / steps as f64,
+                    -p.rotation_rad * k as f64 / steps as f64,
                 )
             })
             .collect();
@@ -603,8 +607,8 @@ mod tests {
     fn point() -> WoundPoint {
         WoundPoint {
             index: 0,
-            entry: Point::new(0.005, 0.0, -0.12),
-            exit: Point::new(-0.005, 0.0, -0.12),
+            entry: Point::new(-0.005, 0.0, -0.12),
+            exit: Point::new(0.005, 0.0, -0.12),
         }
     }
 
@@ -617,11 +621,11 @@ mod tests {
         let needle = Needle::default();
         let start = insertion_start(&needle, &point().entry, &point().exit);
         assert!(close(&(start * needle.tip()), &point().entry));
-        // The wire at the tip runs along entry→exit (−x), the centre 12 mm above.
-        assert!(((start * Vector::y()) - Vector::new(-1.0, 0.0, 0.0)).norm() < 1e-12);
+        // The tip leads along entry→exit (+x; the needle frame's −y), the centre 12 mm above.
+        assert!(((start * -Vector::y()) - Vector::new(1.0, 0.0, 0.0)).norm() < 1e-12);
         assert!(close(
             &(start * Point::origin()),
-            &Point::new(0.005, 0.0, -0.108)
+            &Point::new(-0.005, 0.0, -0.108)
         ));
         // Its normal is +y, as pose correction leaves it.
         assert!(((start * Vector::z()) - Vector::y()).norm() < 1e-12);
@@ -641,17 +645,17 @@ mod tests {
         let w = insertion_waypoints(&needle, &grasp, &point(), &p);
         assert_eq!(w.len(), 3 + 9, "stand-off, start, push, nine 5° steps");
         let tip = |t: &Pose| (t * grasp) * needle.tip();
-        // Stand-off: 1 cm back along entry→exit (+x here) and 5 mm up.
-        assert!(close(&tip(&w[0]), &Point::new(0.015, 0.0, -0.115)));
+        // Stand-off: 1 cm back from the entry against entry→exit (+x here) and 5 mm up.
+        assert!(close(&tip(&w[0]), &Point::new(-0.015, 0.0, -0.115)));
         assert!(close(&tip(&w[1]), &point().entry));
         // Push: 7 mm along entry→exit.
-        assert!(close(&tip(&w[2]), &Point::new(-0.002, 0.0, -0.12)));
+        assert!(close(&tip(&w[2]), &Point::new(0.002, 0.0, -0.12)));
         // The rotation keeps the centre and turns the tip 45° along the arc.
         let c = (w[2] * grasp) * Point::origin();
         assert!(close(&((w[11] * grasp) * Point::origin()), &c));
         let r = 0.012;
         let expect = Point::new(
-            c.x - r * 45f64.to_radians().sin(),
+            c.x + r * 45f64.to_radians().sin(),
             0.0,
             c.z - r * 45f64.to_radians().cos(),
         );
@@ -660,8 +664,8 @@ mod tests {
 
     #[test]
     fn the_extraction_approach_is_one_centimetre_off_then_one_and_a_half_in() {
-        let regrasp = Point::new(-0.01, 0.0, -0.115);
-        let from = Point::new(-0.04, 0.02, -0.09);
+        let regrasp = Point::new(0.01, 0.0, -0.115);
+        let from = Point::new(0.04, 0.02, -0.09);
         let [off, at] = regrasp_waypoints(&regrasp, &from, 0.01, 0.015);
         let h = horizontal(from - regrasp).expect("horizontal");
         assert!(close(

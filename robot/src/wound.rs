@@ -31,8 +31,9 @@ pub struct WoundSpec {
     pub count: usize,
     /// Distance between consecutive sites along +y, m.
     pub spacing_m: f64,
-    /// Distance from the wound's centre line to the entry (+x, the right needle driver's
-    /// side) and to the exit (−x, the left driver's side), m.
+    /// Distance from the wound's centre line to the entry (−x: the right needle driver's side,
+    /// the camera's right when it looks along −y) and to the exit (+x, the left driver's
+    /// side), m.
     pub half_bite_m: f64,
 }
 
@@ -51,7 +52,7 @@ impl Default for WoundSpec {
 }
 
 impl Wound {
-    /// The sites of a straight wound; entry at +x, exit at −x of the centre line (the right
+    /// The sites of a straight wound; entry at −x, exit at +x of the centre line (the right
     /// driver inserts towards the left, which extracts), the i-th at `origin.y + i · spacing`.
     pub fn linear(spec: &WoundSpec) -> Result<Wound, RobotError> {
         let bad = |why: String| {
@@ -83,8 +84,8 @@ impl Wound {
                 let y = spec.origin.y + i as f64 * spec.spacing_m;
                 WoundPoint {
                     index: i,
-                    entry: Point::new(spec.origin.x + spec.half_bite_m, y, spec.origin.z),
-                    exit: Point::new(spec.origin.x - spec.half_bite_m, y, spec.origin.z),
+                    entry: Point::new(spec.origin.x - spec.half_bite_m, y, spec.origin.z),
+                    exit: Point::new(spec.origin.x + spec.half_bite_m, y, spec.origin.z),
                 }
             })
             .collect();
@@ -122,8 +123,8 @@ mod tests {
         let w = Wound::linear(&spec).expect("valid");
         assert_eq!(w.len(), 3);
         assert_eq!(w.points[2].index, 2);
-        assert!((w.points[2].entry - Point::new(0.015, 0.036, -0.1)).norm() < 1e-12);
-        assert!((w.points[2].exit - Point::new(0.005, 0.036, -0.1)).norm() < 1e-12);
+        assert!((w.points[2].entry - Point::new(0.005, 0.036, -0.1)).norm() < 1e-12);
+        assert!((w.points[2].exit - Point::new(0.015, 0.036, -0.1)).norm() < 1e-12);
     }
 
     #[test]

@@ -1,6 +1,7 @@
 #![doc = include_str!("../README.md")]
 
 mod phantom;
+mod sensing;
 mod streams;
 mod thread;
 mod world;
@@ -8,6 +9,7 @@ mod world;
 pub use phantom::{
     Breach, HOLE_TOLERANCE_M, Hole, MIN_PROTRUSION_M, PassScore, Phantom, PhantomGeometry,
 };
+pub use sensing::{NoiseSpec, SensingConfig, SensingFailure};
 pub use streams::{Streams, Subsystem};
 pub use thread::{Thread, ThreadConfig};
 pub use world::{

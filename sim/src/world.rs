@@ -188,7 +188,7 @@ pub struct SceneConfig {
     pub phantom: PhantomGeometry,
     /// The thread model.
     pub thread: ThreadConfig,
-    /// The right tool tip's start, m (modelling choice: above the wound's right side).
+    /// The right tool tip's start, m (modelling choice: above the wound's right side, −x).
     pub right_home: [f64; 3],
     /// The left tool tip's start, m (the paper: "the upper left edge of the workspace").
     pub left_home: [f64; 3],
@@ -205,8 +205,8 @@ impl Default for SceneConfig {
             wound: WoundSpec::default(),
             phantom: PhantomGeometry::default(),
             thread: ThreadConfig::default(),
-            right_home: [0.03, 0.0, -0.09],
-            left_home: [-0.04, 0.02, -0.09],
+            right_home: [-0.03, 0.0, -0.09],
+            left_home: [0.04, 0.02, -0.09],
             grasp_angle_rad: 150f64.to_radians(),
         }
     }
@@ -583,7 +583,7 @@ pub fn nearest_on_needle(needle: &Needle, needle_pose: &Pose, p: &Point) -> (Poi
 }
 
 /// A small random rigid motion: Gaussian-like position (sum of uniforms) and rotation.
-fn perturbation(rng: &mut ChaCha8Rng, sigma_p: f64, sigma_r: f64) -> Pose {
+pub(crate) fn perturbation(rng: &mut ChaCha8Rng, sigma_p: f64, sigma_r: f64) -> Pose {
     // The sum of three uniforms on [-1, 1] has standard deviation 1: close enough to a normal
     // for a perturbation, and needs no extra dependency.
     let mut normal = || (0..3).map(|_| rng.random_range(-1.0..=1.0)).sum::<f64>();

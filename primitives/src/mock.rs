@@ -1,0 +1,104 @@
+//! The primitives on the mock dVRK: the observer that reads the mock's ground truth, and a
+//! builder for the whole rig.
+
+use crate::{FailureKind, Layout, Observer, PassObservation, Rig, RobotPrimitives};
+use std::sync::Arc;
+use stitch_perception::ModelEstimator;
+use stitch_robot::{Point, SimClock, WoundPoint};
+use stitch_sim::{MockDvrk, SceneConfig, SensingConfig, Side, SimError, Streams, Subsystem};
+
+/// The mock's ground truth as an [`Observer`].
+#[derive(Debug)]
+pub struct MockObserver {
+    world: MockDvrk,
+}
+
+impl MockObserver {
+    /// An observer of `world`.
+    pub fn new(world: MockDvrk) -> Self {
+        Self { world }
+    }
+}
+
+impl Observer for MockObserver {
+    fn begin_pass(&mut self) {
+        let _ = self.world.take_tip_path();
+    }
+
+    fn end_pass(&mut self, point: &WoundPoint) -> PassObservation {
+        let path = self.world.take_tip_path();
+        let score = self.world.phantom().score(point, &path);
+        PassObservation {
+            entry_error_m: score.entry_error_m,
+            exit_error_m: score.exit_error_m,
+            protrusion_m: score.protrusion_m,
+            passed: score.passed(),
+        }
+    }
+
+    fn problem(&mut self) -> Option<FailureKind> {
+        let thread = self.world.thread();
+        if self.world.needle_truth().dropped {
+            Some(FailureKind::NeedleDropped)
+        } else if thread.caught {
+            Some(FailureKind::ThreadCaught)
+        } else if thread.tangled {
+            Some(FailureKind::ThreadTangled)
+        } else if thread.short {
+            Some(FailureKind::ThreadShort)
+        } else {
+            None
+        }
+    }
+
+    fn needle_in_tissue(&mut self) -> bool {
+        self.world.lodged().is_some()
+    }
+
+    fn cinched(&mut self, beta_m: f64) {
+        self.world.cinched(beta_m);
+    }
+
+    fn uncinched(&mut self) {
+        self.world.throw_ended_uncinched();
+    }
+}
+
+/// Where the primitives work on the mock, from its scene.
+pub fn mock_layout(scene: &SceneConfig, sensing: &SensingConfig) -> Layout {
+    let p = |a: [f64; 3]| Point::new(a[0], a[1], a[2]);
+    let wound = &scene.wound;
+    Layout {
+        correction_point: p(sensing.corner),
+        left_ready: p(scene.left_home),
+        // Above the wound's left side, in the middle of its length (modelling choice).
+        handover_point: Point::new(
+            wound.origin.x - 0.015,
+            wound.origin.y + wound.spacing_m * (wound.count.saturating_sub(1)) as f64 / 2.0,
+            wound.origin.z + 0.03,
+        ),
+    }
+}
+
+/// The mock dVRK and the primitives over it, everything seeded by `seed`.
+pub fn mock_primitives(
+    scene: &SceneConfig,
+    sensing: SensingConfig,
+    seed: u64,
+    clock: SimClock,
+) -> Result<(RobotPrimitives, MockDvrk), SimError> {
+    let streams = Streams::new(seed);
+    let world = MockDvrk::new(scene, streams, clock)?;
+    let rig = Rig {
+        right: Arc::new(world.arm(Side::Right)),
+        left: Arc::new(world.arm(Side::Left)),
+        right_jaw: Arc::new(world.jaw(Side::Right)),
+        left_jaw: Arc::new(world.jaw(Side::Left)),
+        estimator: Box::new(ModelEstimator::new(world.clone(), sensing, streams)?),
+        observer: Some(Box::new(MockObserver::new(world.clone()))),
+        needle: scene.needle,
+        layout: mock_layout(scene, &sensing),
+        rng: streams.rng(Subsystem::Primitives),
+    };
+    Ok((RobotPrimitives::new(rig), world))
+}
