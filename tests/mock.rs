@@ -64,3 +64,176 @@ fn perfect_perception_and_no_faults_sutures_all_six_throws() {
         report.outcome
     );
 }
+
+mod faults {
+    use super::*;
+    use stitch_engine::FailureClass;
+    use stitch_primitives::FailureKind;
+    use stitch_sim::{FaultConfig, FaultKind, ScheduledFault};
+
+    fn with(faults: FaultConfig) -> Report {
+        let scene = SceneConfig {
+            thread: tame_thread(),
+            faults,
+            ..SceneConfig::default()
+        };
+        run("stitch.rhai", &scene, SensingConfig::perfect(), 7)
+    }
+
+    fn class(r: &Report) -> Option<(FailureClass, String, Option<FailureKind>)> {
+        match &r.outcome {
+            RunOutcome::Failed {
+                class,
+                primitive,
+                reason,
+                ..
+            } => Some((*class, primitive.clone(), reason.clone())),
+            _ => None,
+        }
+    }
+
+    fn attempts(r: &Report, primitive: &str) -> usize {
+        r.throws
+            .iter()
+            .flat_map(|t| &t.attempts)
+            .filter(|a| a.primitive == primitive)
+            .count()
+    }
+
+    fn only(kind: FaultKind, nth: u32) -> FaultConfig {
+        FaultConfig {
+            schedule: vec![ScheduledFault { kind, nth }],
+            ..FaultConfig::default()
+        }
+    }
+
+    #[test]
+    fn joint_offset_errors_make_the_insertion_miss() {
+        let j = [5f64.to_radians(), 5f64.to_radians(), 0.005];
+        let r = with(FaultConfig {
+            joint_offsets: [j, [0.0; 3]],
+            ..FaultConfig::default()
+        });
+        assert_eq!(
+            class(&r),
+            Some((
+                FailureClass::Insertion,
+                "insert".into(),
+                Some(FailureKind::Missed)
+            ))
+        );
+        let miss = r.throws[0].attempts[0].outcome.measured();
+        assert!(
+            miss.entry_error_m.is_none_or(|e| e > 0.0025)
+                || miss.exit_error_m.is_none_or(|e| e > 0.0025)
+        );
+    }
+
+    #[test]
+    fn a_hand_eye_error_makes_the_insertion_miss() {
+        let r = with(FaultConfig {
+            hand_eye_translation_m: [0.0, 0.004, 0.0],
+            ..FaultConfig::default()
+        });
+        assert_eq!(
+            class(&r),
+            Some((
+                FailureClass::Insertion,
+                "insert".into(),
+                Some(FailureKind::Missed)
+            ))
+        );
+    }
+
+    #[test]
+    fn a_perception_dropout_during_extraction_is_retried_and_the_mission_completes() {
+        // Estimate 1 is the first insertion's; estimate 2 the first extraction's.
+        let r = with(only(FaultKind::PerceptionDropout, 2));
+        assert_eq!(r.outcome, RunOutcome::Completed);
+        assert_eq!(attempts(&r, "extract"), 7, "six extractions and one retry");
+    }
+
+    #[test]
+    fn a_perception_dropout_before_insertion_is_an_insertion_failure() {
+        let r = with(only(FaultKind::PerceptionDropout, 1));
+        assert_eq!(
+            class(&r),
+            Some((
+                FailureClass::Insertion,
+                "insert".into(),
+                Some(FailureKind::PerceptionDropout)
+            ))
+        );
+    }
+
+    #[test]
+    fn missed_grasps_exhaust_five_extraction_retries_then_fail_as_extraction() {
+        let r = with(FaultConfig {
+            p_missed_grasp: 1.0,
+            ..FaultConfig::default()
+        });
+        assert_eq!(
+            class(&r),
+            Some((
+                FailureClass::Extraction,
+                "extract".into(),
+                Some(FailureKind::NoProgress)
+            ))
+        );
+        assert_eq!(attempts(&r, "extract"), 6);
+        for a in r.throws[0]
+            .attempts
+            .iter()
+            .filter(|a| a.primitive == "extract")
+        {
+            assert!(
+                a.outcome
+                    .measured()
+                    .endpoint_travel_m
+                    .is_some_and(|t| t < 0.02)
+            );
+        }
+    }
+
+    #[test]
+    fn a_slipping_needle_ruins_the_insertion() {
+        let r = with(FaultConfig {
+            p_needle_slip: 1.0,
+            ..FaultConfig::default()
+        });
+        let (c, primitive, _) = class(&r).expect("failed");
+        assert_eq!((c, primitive.as_str()), (FailureClass::Insertion, "insert"));
+    }
+
+    #[test]
+    fn a_stale_measurement_is_refused_and_ends_the_step_as_an_arm_fault() {
+        let r = with(only(FaultKind::StaleMeasurement, 1));
+        match class(&r) {
+            Some((FailureClass::Insertion, p, Some(FailureKind::ArmFault { message }))) => {
+                assert_eq!(p, "insert");
+                assert!(message.contains("PSM1: measurement is"), "{message}");
+            }
+            other => panic!("{other:?}"),
+        }
+    }
+
+    #[test]
+    fn an_arm_fault_fails_the_phase_it_happens_in_and_holds_the_arms() {
+        // Motion command 1 is the first insertion's stand-off move.
+        let r = with(only(FaultKind::ArmFault, 1));
+        assert!(matches!(
+            class(&r),
+            Some((
+                FailureClass::Insertion,
+                _,
+                Some(FailureKind::ArmFault { .. })
+            ))
+        ));
+        assert!(
+            r.journal
+                .records()
+                .iter()
+                .any(|e| matches!(e.entry, stitch_engine::Entry::Hold { .. }))
+        );
+    }
+}

@@ -1,11 +1,13 @@
 #![doc = include_str!("../README.md")]
 
+mod faults;
 mod phantom;
 mod sensing;
 mod streams;
 mod thread;
 mod world;
 
+pub use faults::{FaultConfig, FaultKind, Faults, MAX_JOINT_OFFSET, ScheduledFault};
 pub use phantom::{
     Breach, HOLE_TOLERANCE_M, Hole, MIN_PROTRUSION_M, PassScore, Phantom, PhantomGeometry,
 };

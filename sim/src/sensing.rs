@@ -144,6 +144,7 @@ impl MockDvrk {
         if truth.dropped {
             return Err(SensingFailure::NotInView);
         }
+        let (injected_dropout, hand_eye) = self.perception_faults();
         let center = truth.pose * Point::origin();
         let corner = Point::new(config.corner[0], config.corner[1], config.corner[2]);
         let spec = if (center - corner).norm() <= config.corner_radius_m {
@@ -154,11 +155,11 @@ impl MockDvrk {
         let across = self.thread().across;
         let p =
             (spec.p_dropout + if across { config.p_dropout_thread } else { 0.0 }).clamp(0.0, 1.0);
-        if rng.random_bool(p) {
+        if injected_dropout || rng.random_bool(p) {
             return Err(SensingFailure::Dropout { by_thread: across });
         }
         let noise = perturbation(rng, spec.sigma_position_m, spec.sigma_rotation_rad);
-        Ok((truth.pose * noise, stamp))
+        Ok((hand_eye * truth.pose * noise, stamp))
     }
 }
 

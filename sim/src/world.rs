@@ -3,6 +3,7 @@
 //! [`stitch_robot::Jaw`] implementations that share this world.
 
 use crate::SimError;
+use crate::faults::{FaultConfig, FaultKind, Faults};
 use crate::phantom::{Phantom, PhantomGeometry};
 use crate::streams::{Streams, Subsystem};
 use crate::thread::{Thread, ThreadConfig};
@@ -173,6 +174,11 @@ struct State {
     lodged: Option<usize>,
     /// The wound point the needle last went into.
     last_point: Option<usize>,
+    faults: Faults,
+    /// Each PSM's remote centre of motion, m.
+    rcm: [Point; 2],
+    /// Each PSM's setpoint before its last move (what a stale measurement reports).
+    previous: [Pose; 2],
 }
 
 /// Where things are at the start, and the models' parameters. Poses in the robot frame, m.
@@ -195,6 +201,11 @@ pub struct SceneConfig {
     /// Where along the arc the right jaw first holds the needle, rad from the tip (modelling
     /// choice: 150°, near the swage, leaving the tip free).
     pub grasp_angle_rad: f64,
+    /// Each PSM's remote centre of motion, m (modelling choice: 9 cm above its home).
+    pub rcm: [[f64; 3]; 2],
+    /// Injected faults (none by default).
+    #[serde(default)]
+    pub faults: FaultConfig,
 }
 
 impl Default for SceneConfig {
@@ -208,6 +219,8 @@ impl Default for SceneConfig {
             right_home: [-0.03, 0.0, -0.09],
             left_home: [0.04, 0.02, -0.09],
             grasp_angle_rad: 150f64.to_radians(),
+            rcm: [[-0.03, 0.0, 0.0], [0.04, 0.02, 0.0]],
+            faults: FaultConfig::default(),
         }
     }
 }
@@ -305,11 +318,24 @@ impl MockDvrk {
             thread_rng: streams.rng(Subsystem::Thread),
             lodged: None,
             last_point: None,
+            faults: Faults::new(scene.faults.clone(), streams.rng(Subsystem::Faults))?,
+            rcm: scene.rcm.map(|p| Point::new(p[0], p[1], p[2])),
+            previous: home,
         };
         Ok(Self {
             state: Arc::new(Mutex::new(state)),
             clock,
         })
+    }
+
+    /// Whether an injected perception dropout fires for this estimate, and the hand-eye
+    /// error to apply to it.
+    pub(crate) fn perception_faults(&self) -> (bool, Pose) {
+        let mut s = self.lock();
+        (
+            s.faults.fires(FaultKind::PerceptionDropout),
+            s.faults.hand_eye(),
+        )
     }
 
     /// The phantom.
@@ -402,6 +428,12 @@ impl MockDvrk {
                 what: "goal pose".into(),
             });
         }
+        if s.faults.fires(FaultKind::ArmFault) {
+            return Err(RobotError::Fault {
+                arm: name.into(),
+                message: "injected arm fault".into(),
+            });
+        }
         let psm = &s.psms[side.index()];
         let start = psm.setpoint;
         let distance = (goal.translation.vector - start.translation.vector).norm();
@@ -416,9 +448,22 @@ impl MockDvrk {
                 start.rotation.slerp(&goal.rotation, t),
             );
             if let Some(grasp) = carried {
-                s.needle.pose = pose * grasp;
+                let actual = s
+                    .faults
+                    .actual_pose(side.index(), &s.rcm[side.index()], &pose);
+                s.needle.pose = actual * grasp;
                 let tip = s.needle.pose * s.needle_model.tip();
                 s.tip_path.push(tip);
+            }
+        }
+        if let Some(grasp) = carried {
+            if s.faults.fires(FaultKind::NeedleSlip) {
+                let slipped = grasp * s.faults.slip();
+                let actual = s
+                    .faults
+                    .actual_pose(side.index(), &s.rcm[side.index()], goal);
+                s.needle.grips[side.index()] = Some(slipped);
+                s.needle.pose = actual * slipped;
             }
         }
         if carried.is_some() {
@@ -440,6 +485,7 @@ impl MockDvrk {
                 thread.on_sweep(thread_rng);
             }
         }
+        s.previous[side.index()] = start;
         let psm = &mut s.psms[side.index()];
         psm.setpoint = *goal;
         psm.commands += 1;
@@ -486,8 +532,10 @@ impl MockDvrk {
                 }
             }
         } else if angle_rad < before && !s.needle.dropped {
-            let tool = s.psms[i].setpoint;
-            if s.needle.grips[i].is_none()
+            let tool = s.faults.actual_pose(i, &s.rcm[i], &s.psms[i].setpoint);
+            let missed = s.faults.fires(FaultKind::MissedGrasp);
+            if !missed
+                && s.needle.grips[i].is_none()
                 && jaw_reaches_needle(
                     &s.needle_model,
                     &s.needle.pose,
@@ -604,7 +652,22 @@ impl Arm for MockArm {
         self.side.arm_name()
     }
     fn measured_cp(&self) -> Result<Pose, RobotError> {
-        self.setpoint_cp()
+        let mut s = self.world.lock();
+        let i = self.side.index();
+        // The encoders cannot see joint offsets: the measured pose is the commanded one. A
+        // stale measurement (the pose from before the last move) is refused, as the dVRK
+        // backend refuses data older than its bound.
+        if s.faults.fires(FaultKind::StaleMeasurement) {
+            let age_s = (s.psms[i].setpoint.translation.vector - s.previous[i].translation.vector)
+                .norm()
+                / s.config.max_linear_m_per_s;
+            Err(RobotError::Stale {
+                arm: self.side.arm_name().into(),
+                age_s,
+            })
+        } else {
+            Ok(s.psms[i].setpoint)
+        }
     }
     fn setpoint_cp(&self) -> Result<Pose, RobotError> {
         Ok(self.world.lock().psms[self.side.index()].setpoint)
