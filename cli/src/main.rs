@@ -10,11 +10,12 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::Arc;
 use stitch_engine::{
-    ExploreOptions, Loaded, OutcomeSchedule, PlanErrors, PlanLoader, Report, RunOutcome, Runner,
-    ScriptLimits, ScriptedSupervisor, explore, mermaid, validate,
+    ExploreOptions, InterventionResult, Loaded, OutcomeSchedule, PlanErrors, PlanLoader, Report,
+    RunOutcome, Runner, ScriptLimits, ScriptedSupervisor, explore, mermaid, validate,
 };
-use stitch_primitives::{OutcomeModel, ScriptedPrimitives};
+use stitch_primitives::{OutcomeModel, ScriptedPrimitives, mock_primitives};
 use stitch_robot::{SimClock, Wound, WoundSpec};
+use stitch_sim::{SceneConfig, SensingConfig};
 
 /// Exit codes, documented in `--help` and `docs/cli.md`.
 mod exit {
@@ -83,8 +84,15 @@ enum Command {
         #[arg(long, default_value_t = 1)]
         seed: u64,
         /// Which robot executes the plan.
-        #[arg(long, value_enum, default_value_t = RobotKind::Scripted)]
+        #[arg(long, value_enum, default_value_t = RobotKind::Mock)]
         robot: RobotKind,
+        /// How the mock estimates the needle pose: its noise model, or the truth.
+        #[arg(long, value_enum, default_value_t = PerceptionKind::Model)]
+        perception: PerceptionKind,
+        /// The mock's scene, models and faults (TOML; see docs/mock-dvrk.md). Without it,
+        /// the defaults.
+        #[arg(long)]
+        mock_config: Option<PathBuf>,
         /// Write the journal (JSON Lines) here.
         #[arg(long)]
         journal: Option<PathBuf>,
@@ -105,20 +113,54 @@ enum Command {
     },
 }
 
+/// The mock dVRK's configuration file.
+#[derive(Debug, Default, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
+struct MockConfig {
+    scene: SceneConfig,
+    sensing: SensingConfig,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+enum PerceptionKind {
+    /// The mock's noise model: truth plus position-dependent noise and dropouts.
+    Model,
+    /// The true needle pose, never dropping out.
+    Perfect,
+}
+
 #[derive(Debug, clap::Args)]
 struct WoundArgs {
-    /// Number of wound points `wound()` returns to the script.
-    #[arg(long, default_value_t = WoundSpec::default().count)]
-    wound_points: usize,
-    /// Spacing between wound points along +y, in millimetres.
-    #[arg(long, default_value_t = WoundSpec::default().spacing_m * 1e3)]
-    wound_spacing_mm: f64,
+    /// Number of wound points `wound()` returns to the script [default: 6, or the mock
+    /// configuration's].
+    #[arg(long)]
+    wound_points: Option<usize>,
+    /// Spacing between wound points along +y, in millimetres [default: 8, or the mock
+    /// configuration's].
+    #[arg(long)]
+    wound_spacing_mm: Option<f64>,
+}
+
+impl WoundArgs {
+    /// `base` with these flags applied.
+    fn apply(&self, mut base: WoundSpec) -> WoundSpec {
+        if let Some(n) = self.wound_points {
+            base.count = n;
+        }
+        if let Some(mm) = self.wound_spacing_mm {
+            base.spacing_m = mm * 1e-3;
+        }
+        base
+    }
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 enum RobotKind {
+    /// The embedded mock dVRK: two kinematic PSMs, the needle, the tissue phantom, the
+    /// thread, perception noise and injected faults, all seeded.
+    Mock,
     /// Outcomes drawn from a seeded distribution (or replayed from --outcomes); moves
-    /// nothing. The default until the mock dVRK lands.
+    /// nothing and simulates no geometry.
     Scripted,
 }
 
@@ -141,7 +183,7 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
             wound,
             ..
         } => {
-            let Some(loaded) = load(&plan, &wound)? else {
+            let Some(loaded) = load(&plan, &wound.apply(WoundSpec::default()))? else {
                 return Ok(exit::INVALID_PLAN);
             };
             print!("{}", show::plan_tree(&loaded.plan));
@@ -156,7 +198,7 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
             diagram,
             wound,
         } => {
-            let (loaded, errors) = evaluate(&plan, &wound)?;
+            let (loaded, errors) = evaluate(&plan, &wound.apply(WoundSpec::default()))?;
             if let Some(errors) = &errors {
                 eprintln!("{errors}");
             }
@@ -212,22 +254,47 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
             json,
             skip_validation,
             wound,
+            perception,
+            mock_config,
         } => {
+            if outcomes.is_some() && robot != RobotKind::Scripted {
+                anyhow::bail!(
+                    "--outcomes replays a schedule on the scripted robot: add --robot scripted"
+                );
+            }
+            let mut mock = match &mock_config {
+                Some(path) => {
+                    let text = std::fs::read_to_string(path)
+                        .with_context(|| format!("cannot read {}", path.display()))?;
+                    toml::from_str::<MockConfig>(&text)
+                        .with_context(|| format!("invalid mock configuration {}", path.display()))?
+                }
+                None => MockConfig::default(),
+            };
+            mock.scene.wound = wound.apply(mock.scene.wound.clone());
+            let spec = mock.scene.wound.clone();
             let loaded = if skip_validation && robot == RobotKind::Scripted {
-                let (loaded, errors) = evaluate(&plan, &wound)?;
+                let (loaded, errors) = evaluate(&plan, &spec)?;
                 if let Some(errors) = errors {
                     eprintln!("{errors}");
                     eprintln!("running anyway (--skip-validation, scripted robot: nothing moves)");
                 }
                 loaded
             } else {
-                load(&plan, &wound)?
+                load(&plan, &spec)?
             };
             let Some(loaded) = loaded else {
                 return Ok(exit::INVALID_PLAN);
             };
             let report = match robot {
                 RobotKind::Scripted => run_scripted(&loaded, seed, outcomes.as_deref())?,
+                RobotKind::Mock => {
+                    let sensing = match perception {
+                        PerceptionKind::Model => mock.sensing,
+                        PerceptionKind::Perfect => SensingConfig::perfect(),
+                    };
+                    run_mock(&loaded, &mock.scene, sensing, seed)?
+                }
             };
             if let Some(path) = journal {
                 let file = std::fs::File::create(&path)
@@ -263,12 +330,13 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
 
 fn robot_name(robot: RobotKind) -> &'static str {
     match robot {
+        RobotKind::Mock => "the mock dVRK",
         RobotKind::Scripted => "the scripted robot",
     }
 }
 
 /// Load and validate; print plan errors one per line and return `None` if invalid.
-fn load(path: &Path, wound: &WoundArgs) -> anyhow::Result<Option<Loaded>> {
+fn load(path: &Path, wound: &WoundSpec) -> anyhow::Result<Option<Loaded>> {
     let (loaded, errors) = evaluate(path, wound)?;
     if let Some(errors) = errors {
         eprintln!("{errors}");
@@ -297,16 +365,9 @@ fn write_diagram(file: &Path, diagram: &str) -> anyhow::Result<()> {
 }
 
 /// Evaluate the script; validate the plan if it evaluated. Evaluation errors leave no plan.
-fn evaluate(
-    path: &Path,
-    wound: &WoundArgs,
-) -> anyhow::Result<(Option<Loaded>, Option<PlanErrors>)> {
-    let spec = WoundSpec {
-        count: wound.wound_points,
-        spacing_m: wound.wound_spacing_mm * 1e-3,
-        ..WoundSpec::default()
-    };
-    let wound = Wound::linear(&spec).context("invalid --wound-points or --wound-spacing-mm")?;
+fn evaluate(path: &Path, spec: &WoundSpec) -> anyhow::Result<(Option<Loaded>, Option<PlanErrors>)> {
+    let wound =
+        Wound::linear(spec).context("invalid wound (--wound-points, --wound-spacing-mm)")?;
     let loader = PlanLoader::new(&wound, ScriptLimits::default());
     let source = std::fs::read_to_string(path)
         .with_context(|| format!("cannot read the plan {}", path.display()))?;
@@ -319,6 +380,29 @@ fn evaluate(
     }
     let errors = validate(&loaded.plan).err();
     Ok((Some(loaded), errors))
+}
+
+fn run_mock(
+    loaded: &Loaded,
+    scene: &SceneConfig,
+    sensing: SensingConfig,
+    seed: u64,
+) -> anyhow::Result<Report> {
+    let clock = SimClock::new();
+    let (mut primitives, _world) = mock_primitives(scene, sensing, seed, clock.clone())
+        .context("invalid mock configuration")?;
+    // The supervising surgeon's stand-in gives no commands. It cannot yet perform a recovery
+    // motion on the mock, so a requested intervention ends failed rather than pretending.
+    let mut supervisor = ScriptedSupervisor::new([], [InterventionResult::Failed; 2]);
+    let plan = Arc::new(loaded.plan.clone());
+    Ok(Runner::new(
+        plan,
+        &mut primitives,
+        &mut supervisor,
+        Arc::new(clock),
+        Some(seed),
+    )
+    .run())
 }
 
 fn run_scripted(loaded: &Loaded, seed: u64, outcomes: Option<&Path>) -> anyhow::Result<Report> {

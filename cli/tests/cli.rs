@@ -69,7 +69,7 @@ fn run_prints_a_timeline_and_the_outcome() {
     let out = stitch(&["run", "scripts/stitch_human.rhai", "--seed", "3"]);
     let s = text(&out.stdout);
     assert!(
-        s.starts_with("STITCH + Human on the scripted robot, seed 3"),
+        s.starts_with("STITCH + Human on the mock dVRK, seed 3"),
         "{s}"
     );
     assert!(s.contains("throw 1 ("), "{s}");
@@ -128,6 +128,8 @@ fn a_replayed_schedule_reproduces_its_outcome() {
     let out = stitch(&[
         "run",
         "scripts/stitch.rhai",
+        "--robot",
+        "scripted",
         "--outcomes",
         schedule.to_str().expect("utf-8"),
         "--json",
@@ -150,6 +152,8 @@ fn an_e_stop_in_a_schedule_exits_five() {
     let out = stitch(&[
         "run",
         "scripts/stitch.rhai",
+        "--robot",
+        "scripted",
         "--outcomes",
         schedule.to_str().expect("utf-8"),
     ]);
@@ -203,6 +207,8 @@ fn explore_rejects_an_unsafe_order_with_the_path_and_a_replayable_schedule() {
     let replay = stitch(&[
         "run",
         "engine/tests/counterexamples/no_handover.rhai",
+        "--robot",
+        "scripted",
         "--outcomes",
         cx.to_str().expect("utf-8"),
         "--skip-validation",

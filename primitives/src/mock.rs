@@ -62,6 +62,10 @@ impl Observer for MockObserver {
     fn uncinched(&mut self) {
         self.world.throw_ended_uncinched();
     }
+
+    fn thread_left_m(&mut self) -> f64 {
+        self.world.thread().remaining_m()
+    }
 }
 
 /// Where the primitives work on the mock, from its scene.

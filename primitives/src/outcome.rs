@@ -22,6 +22,9 @@ pub struct Measurements {
     /// Thread consumed or pulled by this step, m.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub thread_used_m: Option<f64>,
+    /// Thread left on the needle's side after this step, where something can tell, m.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub thread_left_m: Option<f64>,
 }
 
 /// Why a step failed. The engine decides retry, intervention or failure from this and the

@@ -25,14 +25,22 @@ pub const ROTATION_STEP_RAD: f64 = 5.0 * std::f64::consts::PI / 180.0;
 /// Before insertion the tip waits this far back from the entry, along entry→exit and above
 /// it, so the approach comes from outside the tissue (modelling choice), m.
 pub const INSERT_STANDOFF_M: f64 = 0.01;
+/// A primitive waits up to this many estimator cycles for a needle estimate before it
+/// reports a perception dropout (the paper's estimator ran continuously at 0.67 Hz;
+/// modelling choice: 3 cycles, 4.5 s).
+pub const ESTIMATE_TRIES: usize = 3;
 /// How far a driver backs off after letting go or after a failed grasp (modelling choice), m.
 pub const RETREAT_M: f64 = 0.02;
 /// The linear pull that finishes an extraction ("pulled out linearly"; modelling choice 3 cm
 /// away from the wound and up), m.
 pub const EXTRACT_PULL_M: f64 = 0.03;
 /// The small rotation of the right driver that tests a handover grasp: if it holds the needle,
-/// the needle's normal turns with it ("Needle Handover"; modelling choice 10°), rad.
-pub const HANDOVER_TUG_RAD: f64 = 10.0 * std::f64::consts::PI / 180.0;
+/// the needle's normal turns with it ("Needle Handover"; modelling choice 20°, well above the
+/// estimator's normal noise), rad.
+pub const HANDOVER_TUG_RAD: f64 = 20.0 * std::f64::consts::PI / 180.0;
+/// How far in from the needle's end the handover grasps it, along the arc: the blades must
+/// close on wire, not on the end (modelling choice: 20°, 4 mm of a 12 mm needle), rad.
+pub const HANDOVER_INSET_RAD: f64 = 20.0 * std::f64::consts::PI / 180.0;
 /// The longest pull a cinch makes in one motion (modelling choice: the workspace's reach), m.
 pub const CINCH_MAX_PULL_M: f64 = 0.05;
 
@@ -54,6 +62,8 @@ pub trait Observer: Send {
     fn cinched(&mut self, beta_m: f64);
     /// A throw ended without a cinch: its thread stays slack.
     fn uncinched(&mut self);
+    /// Thread not yet used in sutures nor pulled free, m.
+    fn thread_left_m(&mut self) -> f64;
 }
 
 /// How a needle pass went.
@@ -259,11 +269,14 @@ impl RobotPrimitives {
         &self.rig
     }
 
+    /// A needle estimate, waiting up to [`ESTIMATE_TRIES`] estimator cycles for one.
     fn estimate(&mut self) -> Step<NeedleEstimate> {
-        self.rig
-            .estimator
-            .estimate_needle()
-            .map_err(|_| failed(FailureKind::PerceptionDropout))
+        for _ in 0..ESTIMATE_TRIES {
+            if let Ok(e) = self.rig.estimator.estimate_needle() {
+                return Ok(e);
+            }
+        }
+        Err(failed(FailureKind::PerceptionDropout))
     }
 
     fn problem(&mut self) -> Option<FailureKind> {
@@ -304,6 +317,7 @@ impl RobotPrimitives {
             let pass = o.end_pass(point);
             measured.entry_error_m = pass.entry_error_m;
             measured.exit_error_m = pass.exit_error_m;
+            measured.thread_left_m = Some(o.thread_left_m());
             if let Some(kind) = o.problem() {
                 return Err(Failure { kind, measured });
             }
@@ -367,12 +381,8 @@ impl RobotPrimitives {
         let away = horizontal(from - regrasp).unwrap_or_else(Vector::x);
         let pull = (away + Vector::z()).normalize() * EXTRACT_PULL_M;
         Self::moves(&self.rig.left, &[shifted(&last, pull)])?;
-        let after = self.estimate().map_err(|mut f| {
-            // The arm holds whatever it grasped; let go so a retry starts clean.
-            let _ = self.rig.left_jaw.open();
-            f.measured.endpoint_travel_m = None;
-            f
-        })?;
+        // If no estimate comes, the left jaw keeps whatever it holds: the needle may be out.
+        let after = self.estimate()?;
         let (_, _, tip2, swage2) = after.features(&self.rig.needle);
         let travel = if is_tip {
             (tip2 - tip).norm()
@@ -414,24 +424,20 @@ impl RobotPrimitives {
             horizontal(here - self.rig.layout.handover_point).unwrap_or_else(|| -Vector::x());
         let pull = away * beta.min(CINCH_MAX_PULL_M);
         Self::moves(&self.rig.left, &[shifted(&tool, pull)])?;
+        let mut measured = Measurements {
+            thread_used_m: Some(beta),
+            ..Measurements::default()
+        };
         if let Some(o) = self.rig.observer.as_mut() {
             o.cinched(beta);
+            measured.thread_left_m = Some(o.thread_left_m());
         }
         self.cinched = true;
         let present = pose(self.rig.layout.handover_point, tool.rotation);
         Self::moves(&self.rig.left, &[present])?;
         match self.problem() {
-            Some(kind) => Err(Failure {
-                kind,
-                measured: Measurements {
-                    thread_used_m: Some(beta),
-                    ..Measurements::default()
-                },
-            }),
-            None => Ok(Measurements {
-                thread_used_m: Some(beta),
-                ..Measurements::default()
-            }),
+            Some(kind) => Err(Failure { kind, measured }),
+            None => Ok(measured),
         }
     }
 
@@ -454,12 +460,25 @@ impl RobotPrimitives {
                 .translation
                 .vector,
         );
-        let regrasp = if (tip - left).norm() >= (swage - left).norm() {
-            tip
+        // The re-grasp point: near the endpoint farther from the left driver, a little way in
+        // along the arc so the blades close on wire; approached across the needle's plane.
+        let far_is_tip = (tip - left).norm() >= (swage - left).norm();
+        let angle = if far_is_tip {
+            HANDOVER_INSET_RAD
         } else {
-            swage
+            std::f64::consts::PI - HANDOVER_INSET_RAD
         };
-        let h = horizontal(right - regrasp).unwrap_or_else(Vector::x);
+        let regrasp = before.pose * self.rig.needle.point_at(angle);
+        let h = horizontal(n0)
+            .map(|n| {
+                if n.dot(&(right - regrasp)) >= 0.0 {
+                    n
+                } else {
+                    -n
+                }
+            })
+            .or_else(|| horizontal(right - regrasp))
+            .unwrap_or_else(Vector::x);
         let jitter = if attempt > 0 {
             let side = Vector::z().cross(&h);
             side * self.rig.rng.random_range(-p.jitter_m..=p.jitter_m)
@@ -467,7 +486,7 @@ impl RobotPrimitives {
             Vector::zeros()
         };
         let target = regrasp + jitter;
-        let [off, at] = regrasp_waypoints(&target, &right, p.offset_m, p.offset_m);
+        let [off, at] = regrasp_waypoints(&target, &(target + h), p.offset_m, p.offset_m);
         let _ = self.rig.right_jaw.open().map_err(fault)?;
         Self::moves(&self.rig.right, &[off, at])?;
         let _ = self.rig.right_jaw.close().map_err(fault)?;

@@ -13,6 +13,7 @@ pub const NEEDLE_WIRE_DIAMETER_M: f64 = 0.0007;
 /// x–y plane with normal +z, the tip is at angle 0, `(r, 0, 0)`, the swage (where the thread
 /// leaves) at angle π, `(−r, 0, 0)`, and the arc passes through `(0, r, 0)`.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct Needle {
     /// Radius, m.
     pub radius_m: f64,

@@ -24,6 +24,7 @@ pub struct Wound {
 /// A straight raised wound along the robot's +y axis (the paper's "Assumptions": raised and
 /// orthogonal to the camera).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct WoundSpec {
     /// The first site's midpoint between entry and exit, robot frame, m.
     pub origin: Point,

@@ -22,6 +22,7 @@ pub const MIN_PROTRUSION_M: f64 = 0.005;
 
 /// The raised edges' extent around the holes (modelling choices: a 3-Dmed-like pad).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct PhantomGeometry {
     /// Height of the edge's top above the holes, m.
     pub top_above_hole_m: f64,

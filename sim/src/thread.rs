@@ -10,6 +10,7 @@ use serde::{Deserialize, Serialize};
 
 /// The thread model's parameters.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct ThreadConfig {
     /// Thread length at the start (the paper's threads: 10–40 cm), m.
     pub length_m: f64,

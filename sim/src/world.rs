@@ -56,6 +56,7 @@ impl Side {
 
 /// The PSMs' kinematic limits and the grasp model's tolerances.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct PsmConfig {
     /// Fastest tool-tip speed of a `move_cp` trajectory, m/s (modelling choice: a careful
     /// 2 cm/s, well under the dVRK's limits).
@@ -183,6 +184,7 @@ struct State {
 
 /// Where things are at the start, and the models' parameters. Poses in the robot frame, m.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct SceneConfig {
     /// The PSMs' limits and the grasp model.
     pub psm: PsmConfig,
@@ -231,6 +233,9 @@ pub const JAW_LENGTH_M: f64 = 0.009;
 /// A closing jaw grasps the wire only across it: not if the jaw lies within this angle of the
 /// wire's direction (modelling choice), rad.
 pub const GRASP_MIN_CROSSING_RAD: f64 = 20.0 * std::f64::consts::PI / 180.0;
+/// The re-grasp region: within this distance of the needle's arc, a closing jaw may catch
+/// thread lying there (modelling choice), m.
+pub const REGRASP_REGION_M: f64 = 0.01;
 /// A right-arm move with the jaw opened at least this wide, mostly along +y near the wound,
 /// is a thread sweep (modelling choice), rad.
 const SWEEP_MIN_JAW_RAD: f64 = 40.0 * std::f64::consts::PI / 180.0;
@@ -552,8 +557,11 @@ impl MockDvrk {
                 s.needle.grips[i] = Some(grasp);
                 s.needle.pose = tool * grasp;
             }
-            if s.lodged.is_some() {
-                // Closing in the re-grasp region may catch thread lying there.
+            let jaw_tip = tool * Point::origin();
+            let near_needle = (jaw_tip - s.needle.pose * Point::origin()).norm()
+                <= s.needle_model.radius_m + REGRASP_REGION_M;
+            if s.lodged.is_some() && near_needle {
+                // Closing in the re-grasp region, by the needle, may catch thread lying there.
                 let State {
                     thread, thread_rng, ..
                 } = &mut *s;
