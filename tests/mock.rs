@@ -101,8 +101,15 @@ mod faults {
     }
 
     fn only(kind: FaultKind, nth: u32) -> FaultConfig {
+        at(kind, &[nth])
+    }
+
+    fn at(kind: FaultKind, nths: &[u32]) -> FaultConfig {
         FaultConfig {
-            schedule: vec![ScheduledFault { kind, nth }],
+            schedule: nths
+                .iter()
+                .map(|&nth| ScheduledFault { kind, nth })
+                .collect(),
             ..FaultConfig::default()
         }
     }
@@ -147,15 +154,16 @@ mod faults {
 
     #[test]
     fn a_perception_dropout_during_extraction_is_retried_and_the_mission_completes() {
-        // Estimate 1 is the first insertion's; estimate 2 the first extraction's.
-        let r = with(only(FaultKind::PerceptionDropout, 2));
+        // Estimate 1 is the first insertion's; estimates 2 to 4 are the first extraction's
+        // three tries (a primitive waits up to three estimator cycles).
+        let r = with(at(FaultKind::PerceptionDropout, &[2, 3, 4]));
         assert_eq!(r.outcome, RunOutcome::Completed);
         assert_eq!(attempts(&r, "extract"), 7, "six extractions and one retry");
     }
 
     #[test]
     fn a_perception_dropout_before_insertion_is_an_insertion_failure() {
-        let r = with(only(FaultKind::PerceptionDropout, 1));
+        let r = with(at(FaultKind::PerceptionDropout, &[1, 2, 3]));
         assert_eq!(
             class(&r),
             Some((
