@@ -59,10 +59,6 @@ impl Observer for MockObserver {
         self.world.cinched(beta_m);
     }
 
-    fn uncinched(&mut self) {
-        self.world.throw_ended_uncinched();
-    }
-
     fn thread_left_m(&mut self) -> f64 {
         self.world.thread().remaining_m()
     }

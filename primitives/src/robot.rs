@@ -60,8 +60,6 @@ pub trait Observer: Send {
     fn needle_in_tissue(&mut self) -> bool;
     /// A cinch left `beta_m` of free thread.
     fn cinched(&mut self, beta_m: f64);
-    /// A throw ended without a cinch: its thread stays slack.
-    fn uncinched(&mut self);
     /// Thread not yet used in sutures nor pulled free, m.
     fn thread_left_m(&mut self) -> f64;
 }
@@ -130,10 +128,6 @@ pub struct RobotPrimitives {
     /// The needle in the right tool's frame, as the last pose correction measured it: the
     /// next insertion uses it open loop, as the paper does.
     corrected_grasp: Option<Pose>,
-    /// Whether the current throw has cinched its thread.
-    cinched: bool,
-    /// Whether any throw has started.
-    started: bool,
 }
 
 /// A step that cannot go on, and why.
@@ -259,8 +253,6 @@ impl RobotPrimitives {
         Self {
             rig,
             corrected_grasp: None,
-            cinched: false,
-            started: false,
         }
     }
 
@@ -291,13 +283,6 @@ impl RobotPrimitives {
     }
 
     fn insert(&mut self, point: &WoundPoint, p: &InsertParams) -> Step<Measurements> {
-        if let Some(o) = self.rig.observer.as_mut() {
-            if self.started && !self.cinched {
-                o.uncinched();
-            }
-        }
-        self.started = true;
-        self.cinched = false;
         let tool = self.rig.right.measured_cp().map_err(fault)?;
         let grasp = match self.corrected_grasp.take() {
             Some(g) => g,
@@ -432,7 +417,6 @@ impl RobotPrimitives {
             o.cinched(beta);
             measured.thread_left_m = Some(o.thread_left_m());
         }
-        self.cinched = true;
         let present = pose(self.rig.layout.handover_point, tool.rotation);
         Self::moves(&self.rig.left, &[present])?;
         match self.problem() {

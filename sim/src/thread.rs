@@ -14,9 +14,13 @@ use serde::{Deserialize, Serialize};
 pub struct ThreadConfig {
     /// Thread length at the start (the paper's threads: 10–40 cm), m.
     pub length_m: f64,
-    /// Thread one suture leaves in the tissue (physical: the bite plus the run to the previous
+    /// Thread one tight suture holds (physical: the bite plus the run to the previous
     /// stitch; modelling choice 2 cm), m.
     pub per_suture_m: f64,
+    /// Slack a new suture's loop holds until it is cinched (modelling choice 3 cm), m.
+    pub loop_per_suture_m: f64,
+    /// Free thread the needle needs to make the next throw (modelling choice 5 cm), m.
+    pub reach_m: f64,
     /// Chance that, after an insertion, the thread lies across the re-grasp region
     /// (modelling choice).
     pub p_across_after_insert: f64,
@@ -25,7 +29,7 @@ pub struct ThreadConfig {
     pub p_sweep_clears: f64,
     /// Chance that a jaw closing where the thread lies catches it (modelling choice).
     pub p_caught_when_across: f64,
-    /// Extra chance of lying across per metre of uncinched slack (modelling choice).
+    /// Extra chance of lying across per metre of slack in loops (modelling choice).
     pub p_across_per_m_slack: f64,
     /// Chance that a cinch tangles the thread around a jaw (modelling choice).
     pub p_tangle_per_cinch: f64,
@@ -36,6 +40,8 @@ impl Default for ThreadConfig {
         Self {
             length_m: 0.30,
             per_suture_m: 0.02,
+            loop_per_suture_m: 0.03,
+            reach_m: 0.05,
             p_across_after_insert: 0.5,
             p_sweep_clears: 0.85,
             p_caught_when_across: 0.4,
@@ -57,8 +63,14 @@ impl ThreadConfig {
         if !(self.length_m.is_finite() && (0.05..=1.0).contains(&self.length_m)) {
             return bad("length_m", self.length_m, "0.05 to 1.0 m");
         }
-        if !(self.per_suture_m.is_finite() && (0.0..=0.1).contains(&self.per_suture_m)) {
-            return bad("per_suture_m", self.per_suture_m, "0 to 0.1 m");
+        for (name, v) in [
+            ("per_suture_m", self.per_suture_m),
+            ("loop_per_suture_m", self.loop_per_suture_m),
+            ("reach_m", self.reach_m),
+        ] {
+            if !(v.is_finite() && (0.0..=0.2).contains(&v)) {
+                return bad(name, v, "0 to 0.2 m");
+            }
         }
         for (name, p) in [
             ("p_across_after_insert", self.p_across_after_insert),
@@ -81,36 +93,36 @@ impl ThreadConfig {
     }
 }
 
-/// The thread's state.
+/// The thread's state. Its tail is anchored at the first stitch; every suture holds some
+/// thread tight and, until cinched, a loop of slack; what is left is free on the needle's
+/// side. Cinching pulls slack out of the loops into the free length: pull too little early
+/// and later throws run out (the paper's limitation 2b).
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct Thread {
     /// Its parameters.
     pub config: ThreadConfig,
-    /// Thread left in sutures so far, m.
+    /// Thread held tight in sutures, m.
     pub used_m: f64,
-    /// Thread pulled through to the free end by cinching, m.
-    pub free_m: f64,
-    /// Slack not pulled tight (sutures without a cinch), m.
-    pub slack_m: f64,
+    /// Slack in the sutures' loops, m.
+    pub loop_m: f64,
     /// Whether it lies across the re-grasp region.
     pub across: bool,
     /// Whether a jaw holds it (with or without the needle).
     pub caught: bool,
     /// Whether it is tangled around a jaw.
     pub tangled: bool,
-    /// Whether a cinch asked for more than was left.
+    /// Whether too little is free for the throw under way.
     pub short: bool,
 }
 
 impl Thread {
-    /// A fresh thread.
+    /// A fresh thread, all of it free.
     pub fn new(config: ThreadConfig) -> Result<Self, SimError> {
         config.validate()?;
         Ok(Self {
             config,
             used_m: 0.0,
-            free_m: 0.0,
-            slack_m: 0.0,
+            loop_m: 0.0,
             across: false,
             caught: false,
             tangled: false,
@@ -118,17 +130,23 @@ impl Thread {
         })
     }
 
-    /// Thread not yet in sutures nor pulled to the free end, m.
+    /// Free thread on the needle's side, m.
     pub fn remaining_m(&self) -> f64 {
-        self.config.length_m - self.used_m - self.free_m
+        self.config.length_m - self.used_m - self.loop_m
     }
 
-    /// A needle passed through the tissue: one suture's worth of thread is used, and the thread
-    /// may fall across the re-grasp region (more likely with uncinched slack).
+    /// A needle passed through the tissue: one more suture holds thread, with a loop of
+    /// slack; the thread may fall across the re-grasp region (more likely with more slack).
+    /// If less than the reach is left free, the thread is short.
     pub fn on_insertion(&mut self, rng: &mut ChaCha8Rng) {
         self.used_m += self.config.per_suture_m;
+        self.loop_m += self.config.loop_per_suture_m;
+        // A micrometre of slack for rounding: lengths are sums of centimetres.
+        if self.remaining_m() < self.config.reach_m - 1e-6 {
+            self.short = true;
+        }
         let p = (self.config.p_across_after_insert
-            + self.config.p_across_per_m_slack * self.slack_m)
+            + self.config.p_across_per_m_slack * self.loop_m)
             .clamp(0.0, 1.0);
         self.across = rng.random_bool(p);
     }
@@ -147,21 +165,14 @@ impl Thread {
         }
     }
 
-    /// The suture is cinched to leave `beta_m` of free thread (β of "Suture Cinching").
+    /// A cinch pulled `beta_m` (β of "Suture Cinching"): as much slack as the loops hold
+    /// comes out into the free length.
     pub fn on_cinch(&mut self, beta_m: f64, rng: &mut ChaCha8Rng) {
-        self.slack_m = 0.0;
-        self.free_m = beta_m.max(0.0);
-        if self.remaining_m() < 0.0 {
-            self.short = true;
-        }
+        let pulled = beta_m.max(0.0).min(self.loop_m);
+        self.loop_m -= pulled;
         if rng.random_bool(self.config.p_tangle_per_cinch) {
             self.tangled = true;
         }
-    }
-
-    /// A throw ended without a cinch: its thread stays slack.
-    pub fn on_uncinched(&mut self) {
-        self.slack_m += self.config.per_suture_m;
     }
 }
 
@@ -170,25 +181,49 @@ mod tests {
     use super::*;
     use crate::{Streams, Subsystem};
 
-    #[test]
-    fn thread_is_consumed_per_suture_and_a_long_cinch_runs_short() {
-        let mut rng = Streams::new(1).rng(Subsystem::Thread);
-        let mut t = Thread::new(ThreadConfig {
-            length_m: 0.10,
+    fn quiet() -> ThreadConfig {
+        ThreadConfig {
+            p_across_after_insert: 0.0,
+            p_across_per_m_slack: 0.0,
             p_tangle_per_cinch: 0.0,
             ..ThreadConfig::default()
-        })
-        .expect("thread");
+        }
+    }
+
+    #[test]
+    fn cinching_pulls_loop_slack_back_to_the_free_end() {
+        let mut rng = Streams::new(1).rng(Subsystem::Thread);
+        let mut t = Thread::new(quiet()).expect("thread");
         t.on_insertion(&mut rng);
-        t.on_cinch(0.05, &mut rng);
-        // 10 cm − 2 cm used − 5 cm free.
-        assert!((t.remaining_m() - 0.03).abs() < 1e-12);
+        // 30 cm − 2 cm tight − 3 cm loop.
+        assert!((t.remaining_m() - 0.25).abs() < 1e-12);
+        t.on_cinch(0.12, &mut rng);
+        // β = 12 cm pulls the whole 3 cm loop out, no more.
+        assert!((t.remaining_m() - 0.28).abs() < 1e-12);
         assert!(!t.short);
-        t.on_insertion(&mut rng);
-        t.on_insertion(&mut rng);
-        t.on_cinch(0.05, &mut rng);
-        // 10 − 6 − 5 < 0: this cinch asked for more than was left.
-        assert!(t.short);
+    }
+
+    #[test]
+    fn without_cinching_the_sixth_throw_runs_short() {
+        let mut rng = Streams::new(1).rng(Subsystem::Thread);
+        let mut t = Thread::new(quiet()).expect("thread");
+        for throw in 1..=6 {
+            t.on_insertion(&mut rng);
+            // Free: 30 − 5·throw cm; short once below the 5 cm reach.
+            assert_eq!(
+                t.short,
+                throw == 6,
+                "throw {throw}: {} m free",
+                t.remaining_m()
+            );
+        }
+        let mut t = Thread::new(quiet()).expect("thread");
+        for _ in 1..=6 {
+            t.on_insertion(&mut rng);
+            t.on_cinch(0.03, &mut rng);
+        }
+        assert!(!t.short, "cinched every throw: 30 − 6·2 = 18 cm free");
+        assert!((t.remaining_m() - 0.18).abs() < 1e-12);
     }
 
     #[test]

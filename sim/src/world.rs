@@ -358,11 +358,6 @@ impl MockDvrk {
         self.lock().lodged
     }
 
-    /// Record that a throw ended without a cinch: its thread stays slack.
-    pub fn throw_ended_uncinched(&self) {
-        self.lock().thread.on_uncinched();
-    }
-
     /// Record a cinch leaving `beta_m` of free thread.
     pub fn cinched(&self, beta_m: f64) {
         let mut s = self.lock();
