@@ -67,17 +67,20 @@ fn outcome_text(o: &StepOutcome) -> String {
     match o {
         StepOutcome::Succeeded { measured } => {
             let mut parts = vec!["ok".to_string()];
-            if let Some(t) = measured.endpoint_travel_m {
-                parts.push(format!("endpoint moved {:.1} cm", t * 100.0));
-            }
-            if let Some(t) = measured.thread_used_m {
-                parts.push(format!("thread {:.1} cm", t * 100.0));
-            }
             if let Some(e) = measured.entry_error_m {
                 parts.push(format!("entry error {:.2} mm", e * 1e3));
             }
             if let Some(e) = measured.exit_error_m {
                 parts.push(format!("exit error {:.2} mm", e * 1e3));
+            }
+            if let Some(t) = measured.endpoint_travel_m {
+                parts.push(format!("endpoint moved {:.1} cm", t * 100.0));
+            }
+            if let Some(t) = measured.thread_used_m {
+                parts.push(format!("β {:.1} cm", t * 100.0));
+            }
+            if let Some(t) = measured.thread_left_m {
+                parts.push(format!("thread left {:.1} cm", t * 100.0));
             }
             parts.join(", ")
         }
