@@ -218,3 +218,75 @@ fn explore_rejects_an_unsafe_order_with_the_path_and_a_replayable_schedule() {
     assert!(r.contains("replaying"), "{r}");
     assert!(r.contains("aborted (Abort) before throw 2 step 2"), "{r}");
 }
+
+#[test]
+fn the_mock_configuration_documented_in_docs_parses_and_runs() {
+    let doc = std::fs::read_to_string(root().join("docs/mock-dvrk.md")).expect("docs/mock-dvrk.md");
+    let start = doc.find("```toml\n").expect("a toml block") + "```toml\n".len();
+    let end = start + doc[start..].find("```").expect("its end");
+    let config = tmp("mock.toml");
+    std::fs::write(&config, &doc[start..end]).expect("write");
+    let out = stitch(&[
+        "run",
+        "scripts/stitch.rhai",
+        "--mock-config",
+        config.to_str().expect("utf-8"),
+    ]);
+    assert!(
+        matches!(out.status.code(), Some(0 | 4)),
+        "{}",
+        text(&out.stderr)
+    );
+    // The same seed with the defaults gives the same run: the documented values are the defaults.
+    let defaults = stitch(&["run", "scripts/stitch.rhai"]);
+    assert_eq!(text(&out.stdout), text(&defaults.stdout));
+}
+
+#[test]
+fn a_bad_mock_configuration_says_where() {
+    let config = tmp("bad.toml");
+    std::fs::write(&config, "[scene.thread]\np_sweep_clears = 1.5\n").expect("write");
+    let out = stitch(&[
+        "run",
+        "scripts/stitch.rhai",
+        "--mock-config",
+        config.to_str().expect("utf-8"),
+    ]);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(
+        text(&out.stderr).contains("thread.p_sweep_clears"),
+        "{}",
+        text(&out.stderr)
+    );
+    std::fs::write(&config, "[scene]\nnot_a_key = 1\n").expect("write");
+    let out = stitch(&[
+        "run",
+        "scripts/stitch.rhai",
+        "--mock-config",
+        config.to_str().expect("utf-8"),
+    ]);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(
+        text(&out.stderr).contains("not_a_key"),
+        "{}",
+        text(&out.stderr)
+    );
+}
+
+#[test]
+fn the_mock_is_the_default_and_prints_hole_errors_and_thread_left() {
+    let out = stitch(&[
+        "run",
+        "scripts/stitch.rhai",
+        "--seed",
+        "3",
+        "--perception",
+        "perfect",
+    ]);
+    let s = text(&out.stdout);
+    assert!(s.starts_with("STITCH on the mock dVRK, seed 3"), "{s}");
+    assert!(
+        s.contains("entry error") && s.contains("exit error") && s.contains("thread left"),
+        "{s}"
+    );
+}
