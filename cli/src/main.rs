@@ -1,6 +1,7 @@
 //! `stitch`: check and run suture plans.
 #![allow(clippy::print_stdout)] // a command-line tool prints its results
 
+mod mock;
 mod show;
 
 use anyhow::Context;
@@ -10,8 +11,8 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::Arc;
 use stitch_engine::{
-    ExploreOptions, InterventionResult, Loaded, OutcomeSchedule, PlanErrors, PlanLoader, Report,
-    RunOutcome, Runner, ScriptLimits, ScriptedSupervisor, explore, mermaid, validate,
+    ExploreOptions, Loaded, OutcomeSchedule, PlanErrors, PlanLoader, Report, RunOutcome, Runner,
+    ScriptLimits, ScriptedSupervisor, explore, mermaid, validate,
 };
 use stitch_primitives::{OutcomeModel, ScriptedPrimitives, mock_primitives};
 use stitch_robot::{SimClock, Wound, WoundSpec};
@@ -389,12 +390,10 @@ fn run_mock(
     seed: u64,
 ) -> anyhow::Result<Report> {
     let clock = SimClock::new();
-    let (mut primitives, _world) = mock_primitives(scene, sensing, seed, clock.clone())
+    let (mut primitives, world) = mock_primitives(scene, sensing, seed, clock.clone())
         .context("invalid mock configuration")?;
-    // The supervising surgeon's stand-in gives no commands. It cannot yet perform a recovery
-    // motion on the mock, so a requested intervention ends failed rather than pretending.
-    let mut supervisor = ScriptedSupervisor::new([], [InterventionResult::Failed; 2]);
     let plan = Arc::new(loaded.plan.clone());
+    let mut supervisor = mock::MockSupervisor::new(world, Arc::clone(&plan));
     Ok(Runner::new(
         plan,
         &mut primitives,

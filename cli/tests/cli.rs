@@ -290,3 +290,17 @@ fn the_mock_is_the_default_and_prints_hole_errors_and_thread_left() {
         "{s}"
     );
 }
+
+#[test]
+fn on_the_mock_the_supervisor_recovers_and_the_failed_step_runs_again() {
+    let out = stitch(&["run", "scripts/stitch_human.rhai", "--seed", "6"]);
+    let s = text(&out.stdout);
+    assert!(
+        s.contains("human intervention: recovered; the step runs again"),
+        "{s}"
+    );
+    assert!(
+        s.contains("interventions 2 of 2") || s.contains("interventions 1 of 2"),
+        "{s}"
+    );
+}

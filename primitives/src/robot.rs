@@ -268,7 +268,10 @@ impl RobotPrimitives {
                 return Ok(e);
             }
         }
-        Err(failed(FailureKind::PerceptionDropout))
+        // Where an observer can tell why nothing is seen (the needle fell), say that.
+        Err(failed(
+            self.problem().unwrap_or(FailureKind::PerceptionDropout),
+        ))
     }
 
     fn problem(&mut self) -> Option<FailureKind> {

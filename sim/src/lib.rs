@@ -15,8 +15,8 @@ pub use sensing::{NoiseSpec, SensingConfig, SensingFailure};
 pub use streams::{Streams, Subsystem};
 pub use thread::{Thread, ThreadConfig};
 pub use world::{
-    GRASP_MIN_CROSSING_RAD, JAW_LENGTH_M, MockArm, MockDvrk, MockJaw, NeedleTruth, PsmConfig,
-    SceneConfig, Side, grasp_in_needle_frame, jaw_reaches_needle, nearest_on_needle,
+    GRASP_MIN_CROSSING_RAD, JAW_LENGTH_M, MockArm, MockDvrk, MockJaw, NeedlePlace, NeedleTruth,
+    PsmConfig, SceneConfig, Side, grasp_in_needle_frame, jaw_reaches_needle, nearest_on_needle,
 };
 
 /// Errors of the mock dVRK.

@@ -19,6 +19,18 @@ use stitch_robot::{
     WoundSpec,
 };
 
+/// Where a step needs the needle, for a recovery.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum NeedlePlace {
+    /// In the right jaw.
+    Right,
+    /// In the tissue.
+    Tissue,
+    /// In the left jaw.
+    Left,
+}
+
 /// Which needle driver.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -175,11 +187,17 @@ struct State {
     lodged: Option<usize>,
     /// The wound point the needle last went into.
     last_point: Option<usize>,
+    /// The needle's pose when it was last left in the tissue.
+    last_lodged_pose: Option<Pose>,
+    /// The arms' start poses.
+    home: [Pose; 2],
     faults: Faults,
     /// Each PSM's remote centre of motion, m.
     rcm: [Point; 2],
     /// Each PSM's setpoint before its last move (what a stale measurement reports).
     previous: [Pose; 2],
+    /// Where along the arc the right jaw first held the needle, rad.
+    initial_grasp_angle: f64,
 }
 
 /// Where things are at the start, and the models' parameters. Poses in the robot frame, m.
@@ -323,9 +341,12 @@ impl MockDvrk {
             thread_rng: streams.rng(Subsystem::Thread),
             lodged: None,
             last_point: None,
+            last_lodged_pose: None,
+            home,
             faults: Faults::new(scene.faults.clone(), streams.rng(Subsystem::Faults))?,
             rcm: scene.rcm.map(|p| Point::new(p[0], p[1], p[2])),
             previous: home,
+            initial_grasp_angle: scene.grasp_angle_rad,
         };
         Ok(Self {
             state: Arc::new(Mutex::new(state)),
@@ -403,6 +424,54 @@ impl MockDvrk {
         let mut s = self.lock();
         let tip = s.needle.pose * s.needle_model.tip();
         std::mem::replace(&mut s.tip_path, vec![tip])
+    }
+
+    /// The supervising surgeon's single recovery motion, returning the workspace to a safe
+    /// configuration for a step that needs the needle `needs`: the thread untangled and freed
+    /// from the jaws, both arms back home with their jaws open, and the needle held by the
+    /// right jaw at the scene's starting grasp, by the left jaw (likewise, near its tip), or
+    /// back in the tissue as it was last left there. Thread that ran short stays short.
+    pub fn recover(&self, needs: NeedlePlace) {
+        let mut s = self.lock();
+        s.thread.caught = false;
+        s.thread.tangled = false;
+        s.thread.across = false;
+        for i in 0..2 {
+            s.psms[i].setpoint = s.home[i];
+            s.psms[i].jaw_rad = 0.0;
+        }
+        s.needle.dropped = false;
+        s.needle.grips = [None, None];
+        let grasp_at = |angle: f64, needle: &Needle| grasp_in_needle_frame(needle, angle).inverse();
+        match needs {
+            NeedlePlace::Right => {
+                let g = grasp_at(s.initial_grasp_angle, &s.needle_model);
+                s.needle.grips[0] = Some(g);
+                s.needle.pose = s.home[0] * g;
+                s.lodged = None;
+            }
+            NeedlePlace::Left => {
+                let g = grasp_at(
+                    std::f64::consts::PI - s.initial_grasp_angle,
+                    &s.needle_model,
+                );
+                s.needle.grips[1] = Some(g);
+                s.needle.pose = s.home[1] * g;
+                s.lodged = None;
+            }
+            NeedlePlace::Tissue => {
+                if let Some(p) = s.last_lodged_pose {
+                    s.needle.pose = p;
+                    s.lodged = s.last_point;
+                } else {
+                    let g = grasp_at(s.initial_grasp_angle, &s.needle_model);
+                    s.needle.grips[0] = Some(g);
+                    s.needle.pose = s.home[0] * g;
+                }
+            }
+        }
+        let tip = s.needle.pose * s.needle_model.tip();
+        s.tip_path = vec![tip];
     }
 
     /// Let go of the needle wherever it is (a slip, a fault): no jaw holds it.
@@ -527,6 +596,7 @@ impl MockDvrk {
                         }
                         s.lodged = Some(point);
                         s.last_point = Some(point);
+                        s.last_lodged_pose = Some(s.needle.pose);
                     }
                     None => s.needle.dropped = true,
                 }
