@@ -245,32 +245,19 @@ fn the_mock_configuration_documented_in_docs_parses_and_runs() {
 #[test]
 fn a_bad_mock_configuration_says_where() {
     let config = tmp("bad.toml");
-    std::fs::write(&config, "[scene.thread]\np_sweep_clears = 1.5\n").expect("write");
-    let out = stitch(&[
-        "run",
-        "scripts/stitch.rhai",
-        "--mock-config",
-        config.to_str().expect("utf-8"),
-    ]);
-    assert_eq!(out.status.code(), Some(1));
-    assert!(
-        text(&out.stderr).contains("thread.p_sweep_clears"),
-        "{}",
-        text(&out.stderr)
-    );
-    std::fs::write(&config, "[scene]\nnot_a_key = 1\n").expect("write");
-    let out = stitch(&[
-        "run",
-        "scripts/stitch.rhai",
-        "--mock-config",
-        config.to_str().expect("utf-8"),
-    ]);
-    assert_eq!(out.status.code(), Some(1));
-    assert!(
-        text(&out.stderr).contains("not_a_key"),
-        "{}",
-        text(&out.stderr)
-    );
+    for (toml, says) in [
+        (
+            "[scene.thread]\np_sweep_clears = 1.5\n",
+            "thread.p_sweep_clears",
+        ),
+        ("[scene]\nnot_a_key = 1\n", "not_a_key"),
+    ] {
+        std::fs::write(&config, toml).expect("write");
+        let path = config.to_str().expect("utf-8");
+        let out = stitch(&["run", "scripts/stitch.rhai", "--mock-config", path]);
+        assert_eq!(out.status.code(), Some(1));
+        assert!(text(&out.stderr).contains(says), "{}", text(&out.stderr));
+    }
 }
 
 #[test]
