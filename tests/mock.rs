@@ -31,13 +31,15 @@ fn run(script: &str, scene: &SceneConfig, sensing: SensingConfig, seed: u64) -> 
     .run()
 }
 
-/// A thread that never gets in the way.
+/// A thread that never gets in the way: it neither hides the needle nor gets caught.
 fn tame_thread() -> ThreadConfig {
     ThreadConfig {
-        p_across_after_insert: 0.0,
+        catch_radius_m: 0.0,
+        occlusion_radius_m: 0.0,
         p_tangle_per_cinch: 0.0,
         ..ThreadConfig::default()
     }
+}
 }
 
 #[test]

@@ -330,9 +330,10 @@ impl RobotPrimitives {
             &self.rig.right,
             &[start, shifted(&start, Vector::y() * p.distance_m)],
         )?;
-        let _ = self.rig.right_jaw.close().map_err(fault)?;
+        // Lift clear of the thread pushed ahead of the jaw before closing it.
         let end = shifted(&start, Vector::y() * p.distance_m + Vector::z() * RETREAT_M);
         Self::moves(&self.rig.right, &[end])?;
+        let _ = self.rig.right_jaw.close().map_err(fault)?;
         match self.problem() {
             Some(kind) => Err(failed(kind)),
             None => Ok(Measurements::default()),

@@ -40,7 +40,7 @@ pub struct SensingConfig {
     pub in_corner: NoiseSpec,
     /// Noise elsewhere (modelling choice: 0.8 mm, 3°, 15 % dropouts).
     pub elsewhere: NoiseSpec,
-    /// Extra chance of a dropout while the thread lies across the needle (modelling choice).
+    /// Extra chance of a dropout while the thread lies over the needle (modelling choice).
     pub p_dropout_thread: f64,
 }
 
@@ -153,7 +153,8 @@ impl MockDvrk {
         } else {
             config.elsewhere
         };
-        let across = self.thread().across;
+        let tip = truth.pose * self.needle_model().tip();
+        let across = self.thread().occludes(&center, &tip);
         let p =
             (spec.p_dropout + if across { config.p_dropout_thread } else { 0.0 }).clamp(0.0, 1.0);
         if injected_dropout || rng.random_bool(p) {

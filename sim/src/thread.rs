@@ -1,12 +1,16 @@
-//! The suture thread, as a small stochastic model: how much is left, whether it lies across
-//! the re-grasp region (hiding the needle, or caught by a closing jaw), whether it tangles.
-//! Every probability is a modelling choice, named and documented; the seed's `Thread` stream
-//! draws them.
+//! The suture thread: lengths and a shape. Its tail is anchored at the first stitch (a knot
+//! beside the first entry before any); every suture holds some thread tight and, until
+//! cinched, a loop of slack; the rest is free, running from the anchor (the last stitch's
+//! exit) to the needle's swage. The free thread lies as a polyline: straight when taut, else
+//! sagging onto the tissue to one side, the side drawn when the needle goes through (the
+//! seed's `Thread` stream). Where it lies decides, by distance, whether it hides the needle,
+//! whether a closing jaw catches it, and whether a sweep's open jaw pushes it away.
 
 use crate::SimError;
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
+use stitch_robot::{Point, Vector};
 
 /// The thread model's parameters.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -21,16 +25,18 @@ pub struct ThreadConfig {
     pub loop_per_suture_m: f64,
     /// Free thread the needle needs to make the next throw (modelling choice 5 cm), m.
     pub reach_m: f64,
-    /// Chance that, after an insertion, the thread lies across the re-grasp region
-    /// (modelling choice).
-    pub p_across_after_insert: f64,
-    /// Chance that a sweep clears thread lying across the region (the paper's limitation 2a:
-    /// the sweep sometimes misses; modelling choice).
-    pub p_sweep_clears: f64,
-    /// Chance that a jaw closing where the thread lies catches it (modelling choice).
-    pub p_caught_when_across: f64,
-    /// Extra chance of lying across per metre of slack in loops (modelling choice).
-    pub p_across_per_m_slack: f64,
+    /// Of the free thread, how much lies near the wound (the rest trails away out of reach:
+    /// modelling choice 6 cm), m.
+    pub near_m: f64,
+    /// A closing jaw catches thread lying within this distance of its tip (modelling choice:
+    /// 2 mm, about the jaw's half-width), m.
+    pub catch_radius_m: f64,
+    /// Thread within this distance of the needle's tip or centre hides it from the camera
+    /// (modelling choice), m.
+    pub occlusion_radius_m: f64,
+    /// Half the width of the corridor a sweep's open jaw clears (60° open, 9 mm blades:
+    /// about 4.5 mm; modelling choice 5 mm), m.
+    pub sweep_half_width_m: f64,
     /// Chance that a cinch tangles the thread around a jaw (modelling choice).
     pub p_tangle_per_cinch: f64,
 }
@@ -42,10 +48,10 @@ impl Default for ThreadConfig {
             per_suture_m: 0.02,
             loop_per_suture_m: 0.03,
             reach_m: 0.05,
-            p_across_after_insert: 0.5,
-            p_sweep_clears: 0.85,
-            p_caught_when_across: 0.4,
-            p_across_per_m_slack: 4.0,
+            near_m: 0.06,
+            catch_radius_m: 0.002,
+            occlusion_radius_m: 0.004,
+            sweep_half_width_m: 0.005,
             p_tangle_per_cinch: 0.02,
         }
     }
@@ -67,36 +73,28 @@ impl ThreadConfig {
             ("per_suture_m", self.per_suture_m),
             ("loop_per_suture_m", self.loop_per_suture_m),
             ("reach_m", self.reach_m),
+            ("near_m", self.near_m),
+            ("catch_radius_m", self.catch_radius_m),
+            ("occlusion_radius_m", self.occlusion_radius_m),
+            ("sweep_half_width_m", self.sweep_half_width_m),
         ] {
             if !(v.is_finite() && (0.0..=0.2).contains(&v)) {
                 return bad(name, v, "0 to 0.2 m");
             }
         }
-        for (name, p) in [
-            ("p_across_after_insert", self.p_across_after_insert),
-            ("p_sweep_clears", self.p_sweep_clears),
-            ("p_caught_when_across", self.p_caught_when_across),
-            ("p_tangle_per_cinch", self.p_tangle_per_cinch),
-        ] {
-            if !(p.is_finite() && (0.0..=1.0).contains(&p)) {
-                return bad(name, p, "a probability, 0 to 1");
-            }
-        }
-        if !(self.p_across_per_m_slack.is_finite() && self.p_across_per_m_slack >= 0.0) {
+        if !(self.p_tangle_per_cinch.is_finite() && (0.0..=1.0).contains(&self.p_tangle_per_cinch))
+        {
             return bad(
-                "p_across_per_m_slack",
-                self.p_across_per_m_slack,
-                "0 or more per metre",
+                "p_tangle_per_cinch",
+                self.p_tangle_per_cinch,
+                "a probability, 0 to 1",
             );
         }
         Ok(())
     }
 }
 
-/// The thread's state. Its tail is anchored at the first stitch; every suture holds some
-/// thread tight and, until cinched, a loop of slack; what is left is free on the needle's
-/// side. Cinching pulls slack out of the loops into the free length: pull too little early
-/// and later throws run out (the paper's limitation 2b).
+/// The thread's state.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct Thread {
     /// Its parameters.
@@ -105,8 +103,16 @@ pub struct Thread {
     pub used_m: f64,
     /// Slack in the sutures' loops, m.
     pub loop_m: f64,
-    /// Whether it lies across the re-grasp region.
-    pub across: bool,
+    /// Where the free thread leaves the suture line, m.
+    pub anchor: Point,
+    /// The tissue's top surface, where slack comes to rest (z, m).
+    pub surface_z: f64,
+    /// Horizontal direction the slack falls to.
+    pub sag_dir: Vector,
+    /// A sweep pushed the slack to at least this y, until the next throw, m.
+    pub pushed_to_y: Option<f64>,
+    /// Where the free thread near the wound lies: anchor, sag, swage, m.
+    pub polyline: Vec<Point>,
     /// Whether a jaw holds it (with or without the needle).
     pub caught: bool,
     /// Whether it is tangled around a jaw.
@@ -115,15 +121,30 @@ pub struct Thread {
     pub short: bool,
 }
 
+/// Distance from `p` to the segment `a`–`b`, m.
+fn to_segment(p: &Point, a: &Point, b: &Point) -> f64 {
+    let ab = b - a;
+    let t = if ab.norm_squared() > 0.0 {
+        ((p - a).dot(&ab) / ab.norm_squared()).clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    (p - (a + ab * t)).norm()
+}
+
 impl Thread {
-    /// A fresh thread, all of it free.
-    pub fn new(config: ThreadConfig) -> Result<Self, SimError> {
+    /// A fresh thread, all of it free, its tail at `anchor`, slack resting at `surface_z`.
+    pub fn new(config: ThreadConfig, anchor: Point, surface_z: f64) -> Result<Self, SimError> {
         config.validate()?;
         Ok(Self {
             config,
             used_m: 0.0,
             loop_m: 0.0,
-            across: false,
+            anchor,
+            surface_z,
+            sag_dir: -Vector::y(),
+            pushed_to_y: None,
+            polyline: vec![anchor, anchor],
             caught: false,
             tangled: false,
             short: false,
@@ -135,9 +156,67 @@ impl Thread {
         self.config.length_m - self.used_m - self.loop_m
     }
 
-    /// A needle passed through the tissue: one more suture holds thread, with a loop of
-    /// slack; the thread may fall across the re-grasp region (more likely with more slack).
-    /// If less than the reach is left free, the thread is short.
+    /// Lay the free thread from the anchor to the needle's swage at `swage`: straight if the
+    /// near part is taut, else through a sag point on the tissue, offset along `sag_dir` so
+    /// the polyline has the near part's length.
+    pub fn lay(&mut self, swage: Point) {
+        let a = self.anchor;
+        let length = self.remaining_m().min(self.config.near_m).max(0.0);
+        let chord = (swage - a).norm();
+        if length <= chord + 1e-9 {
+            self.polyline = vec![a, swage];
+            return;
+        }
+        let mid = Point::from((a.coords + swage.coords) / 2.0);
+        let rest = Point::new(mid.x, mid.y, self.surface_z.min(mid.z));
+        let through = |m: &Point| (m - a).norm() + (swage - m).norm();
+        let mut m = if through(&rest) >= length {
+            // Dropping to the tissue is already enough: hang part way down.
+            let (mut lo, mut hi) = (0.0, 1.0);
+            for _ in 0..50 {
+                let t = (lo + hi) / 2.0;
+                if through(&(mid + (rest - mid) * t)) < length {
+                    lo = t
+                } else {
+                    hi = t
+                }
+            }
+            mid + (rest - mid) * lo
+        } else {
+            let (mut lo, mut hi) = (0.0, length);
+            for _ in 0..60 {
+                let d = (lo + hi) / 2.0;
+                if through(&(rest + self.sag_dir * d)) < length {
+                    lo = d
+                } else {
+                    hi = d
+                }
+            }
+            rest + self.sag_dir * lo
+        };
+        if let Some(y) = self.pushed_to_y {
+            m.y = m.y.max(y);
+        }
+        self.polyline = vec![a, m, swage];
+    }
+
+    /// The distance from `p` to the free thread near the wound, m.
+    pub fn distance_to(&self, p: &Point) -> f64 {
+        self.polyline
+            .windows(2)
+            .map(|w| to_segment(p, &w[0], &w[1]))
+            .fold(f64::INFINITY, f64::min)
+    }
+
+    /// Whether the thread hides a needle with this centre and tip.
+    pub fn occludes(&self, center: &Point, tip: &Point) -> bool {
+        let r = self.config.occlusion_radius_m;
+        self.distance_to(center) <= r || self.distance_to(tip) <= r
+    }
+
+    /// A needle went through the tissue: one more suture holds thread, with a loop of slack;
+    /// the free thread's slack falls to a side drawn from `rng`. If less than the reach is
+    /// left free, the thread is short.
     pub fn on_insertion(&mut self, rng: &mut ChaCha8Rng) {
         self.used_m += self.config.per_suture_m;
         self.loop_m += self.config.loop_per_suture_m;
@@ -145,22 +224,40 @@ impl Thread {
         if self.remaining_m() < self.config.reach_m - 1e-6 {
             self.short = true;
         }
-        let p = (self.config.p_across_after_insert
-            + self.config.p_across_per_m_slack * self.loop_m)
-            .clamp(0.0, 1.0);
-        self.across = rng.random_bool(p);
+        let angle = rng.random_range(0.0..std::f64::consts::TAU);
+        self.sag_dir = Vector::new(angle.cos(), angle.sin(), 0.0);
+        self.pushed_to_y = None;
     }
 
-    /// A sweep passed over the wound.
-    pub fn on_sweep(&mut self, rng: &mut ChaCha8Rng) {
-        if self.across && rng.random_bool(self.config.p_sweep_clears) {
-            self.across = false;
+    /// The needle came out through `exit`: the free thread now leaves the suture line there.
+    pub fn on_extraction(&mut self, exit: Point) {
+        self.anchor = Point::new(exit.x, exit.y, self.surface_z);
+    }
+
+    /// An open jaw swept along +y from `from` to `to_y`: thread lying in its corridor is
+    /// pushed ahead of it, to `to_y`. Returns whether it moved any.
+    pub fn on_sweep(&mut self, from: &Point, to_y: f64) -> bool {
+        let hw = self.config.sweep_half_width_m;
+        let caught_in_corridor = self
+            .polyline
+            .iter()
+            .skip(1)
+            .take(self.polyline.len().saturating_sub(2))
+            .any(|p| {
+                (p.x - from.x).abs() <= hw
+                    && p.y >= from.y - hw
+                    && p.y <= to_y
+                    && p.z <= from.z + hw
+            });
+        if caught_in_corridor {
+            self.pushed_to_y = Some(to_y);
         }
+        caught_in_corridor
     }
 
-    /// A jaw closed in the re-grasp region.
-    pub fn on_grasp(&mut self, rng: &mut ChaCha8Rng) {
-        if self.across && rng.random_bool(self.config.p_caught_when_across) {
+    /// A jaw closed with its tip at `jaw_tip`: thread that close is caught.
+    pub fn on_grasp(&mut self, jaw_tip: &Point) {
+        if self.distance_to(jaw_tip) <= self.config.catch_radius_m {
             self.caught = true;
         }
     }
@@ -181,19 +278,18 @@ mod tests {
     use super::*;
     use crate::{Streams, Subsystem};
 
-    fn quiet() -> ThreadConfig {
-        ThreadConfig {
-            p_across_after_insert: 0.0,
-            p_across_per_m_slack: 0.0,
+    fn thread() -> Thread {
+        let c = ThreadConfig {
             p_tangle_per_cinch: 0.0,
             ..ThreadConfig::default()
-        }
+        };
+        Thread::new(c, Point::new(0.0, 0.0, 0.0), 0.0).expect("thread")
     }
 
     #[test]
     fn cinching_pulls_loop_slack_back_to_the_free_end() {
         let mut rng = Streams::new(1).rng(Subsystem::Thread);
-        let mut t = Thread::new(quiet()).expect("thread");
+        let mut t = thread();
         t.on_insertion(&mut rng);
         // 30 cm − 2 cm tight − 3 cm loop.
         assert!((t.remaining_m() - 0.25).abs() < 1e-12);
@@ -206,7 +302,7 @@ mod tests {
     #[test]
     fn without_cinching_the_sixth_throw_runs_short() {
         let mut rng = Streams::new(1).rng(Subsystem::Thread);
-        let mut t = Thread::new(quiet()).expect("thread");
+        let mut t = thread();
         for throw in 1..=6 {
             t.on_insertion(&mut rng);
             // Free: 30 − 5·throw cm; short once below the 5 cm reach.
@@ -217,7 +313,7 @@ mod tests {
                 t.remaining_m()
             );
         }
-        let mut t = Thread::new(quiet()).expect("thread");
+        let mut t = thread();
         for _ in 1..=6 {
             t.on_insertion(&mut rng);
             t.on_cinch(0.03, &mut rng);
@@ -227,34 +323,55 @@ mod tests {
     }
 
     #[test]
-    fn a_sweep_that_always_clears_leaves_nothing_to_catch() {
-        let mut rng = Streams::new(2).rng(Subsystem::Thread);
-        let config = ThreadConfig {
-            p_across_after_insert: 1.0,
-            p_sweep_clears: 1.0,
-            ..ThreadConfig::default()
-        };
-        let mut t = Thread::new(config).expect("thread");
-        t.on_insertion(&mut rng);
-        assert!(t.across);
-        t.on_sweep(&mut rng);
-        t.on_grasp(&mut rng);
-        assert!(!t.across && !t.caught);
-        let mut t = Thread::new(ThreadConfig {
-            p_caught_when_across: 1.0,
-            ..config
-        })
-        .expect("thread");
-        t.on_insertion(&mut rng);
-        t.on_grasp(&mut rng);
-        assert!(t.caught, "without the sweep the closing jaw catches it");
+    fn slack_sags_to_its_side_with_the_near_length() {
+        let mut t = thread();
+        t.sag_dir = Vector::y();
+        // Swage 2 cm from the anchor along x, 1 cm up; 6 cm of thread near the wound.
+        t.lay(Point::new(0.02, 0.0, 0.01));
+        let p = &t.polyline;
+        assert_eq!(p.len(), 3);
+        let length = (p[1] - p[0]).norm() + (p[2] - p[1]).norm();
+        assert!((length - 0.06).abs() < 1e-9, "{length}");
+        assert!(p[1].z.abs() < 1e-12, "resting on the tissue");
+        assert!(p[1].y > 0.02, "fallen to +y");
+        // Taut when the swage is farther than the near length.
+        t.lay(Point::new(0.08, 0.0, 0.0));
+        assert_eq!(t.polyline.len(), 2);
     }
 
     #[test]
-    fn probabilities_outside_zero_to_one_are_refused() {
+    fn a_jaw_catches_thread_within_its_radius_and_a_sweep_pushes_it_away() {
+        let mut t = thread();
+        t.sag_dir = Vector::y();
+        t.lay(Point::new(0.02, 0.0, 0.01));
+        let sag = t.polyline[1];
+        let mut far = t.clone();
+        far.on_grasp(&(sag + Vector::new(0.0, 0.0, 0.005)));
+        assert!(!far.caught, "5 mm away");
+        t.clone().on_grasp(&(sag + Vector::new(0.0, 0.0, 0.001)));
+        let mut near = t.clone();
+        near.on_grasp(&(sag + Vector::new(0.0, 0.0, 0.001)));
+        assert!(near.caught, "1 mm away");
+        // A sweep along +y over the sag point pushes the slack ahead of it.
+        let from = Point::new(sag.x, sag.y - 0.004, 0.004);
+        assert!(t.on_sweep(&from, sag.y + 0.03));
+        t.lay(Point::new(0.02, 0.0, 0.01));
+        assert!(t.polyline[1].y >= sag.y + 0.03 - 1e-12);
+        // One that passes 1 cm to the side misses it.
+        let mut u = thread();
+        u.sag_dir = Vector::y();
+        u.lay(Point::new(0.02, 0.0, 0.01));
+        assert!(!u.on_sweep(
+            &Point::new(sag.x + 0.01, sag.y - 0.004, 0.004),
+            sag.y + 0.03
+        ));
+    }
+
+    #[test]
+    fn bad_parameters_are_refused() {
         assert!(
             ThreadConfig {
-                p_sweep_clears: 1.5,
+                p_tangle_per_cinch: 1.5,
                 ..ThreadConfig::default()
             }
             .validate()

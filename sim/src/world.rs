@@ -251,9 +251,6 @@ pub const JAW_LENGTH_M: f64 = 0.009;
 /// A closing jaw grasps the wire only across it: not if the jaw lies within this angle of the
 /// wire's direction (modelling choice), rad.
 pub const GRASP_MIN_CROSSING_RAD: f64 = 20.0 * std::f64::consts::PI / 180.0;
-/// The re-grasp region: within this distance of the needle's arc, a closing jaw may catch
-/// thread lying there (modelling choice), m.
-pub const REGRASP_REGION_M: f64 = 0.01;
 /// A right-arm move with the jaw opened at least this wide, mostly along +y near the wound,
 /// is a thread sweep (modelling choice), rad.
 const SWEEP_MIN_JAW_RAD: f64 = 40.0 * std::f64::consts::PI / 180.0;
@@ -296,7 +293,19 @@ impl MockDvrk {
             why: e.to_string(),
         })?;
         let phantom = Phantom::new(wound, scene.phantom)?;
-        let thread = Thread::new(scene.thread)?;
+        // The thread's tail: a knot 1 cm out from the first entry on its own side, on the
+        // tissue's top (modelling choice).
+        let first = &phantom.wound.points[0];
+        let surface_z = first.entry.z + scene.phantom.top_above_hole_m;
+        let out = (first.entry - first.exit)
+            .try_normalize(1e-12)
+            .unwrap_or_else(|| -Vector::x());
+        let tail = first.entry + out * 0.01;
+        let mut thread = Thread::new(
+            scene.thread,
+            Point::new(tail.x, tail.y, surface_z),
+            surface_z,
+        )?;
         let at = |p: [f64; 3]| {
             Pose::from_parts(
                 Translation3::new(p[0], p[1], p[2]),
@@ -325,6 +334,7 @@ impl MockDvrk {
             commands: 0,
         };
         let pose = home[0] * grasp;
+        thread.lay(pose * scene.needle.swage());
         let state = State {
             config: scene.psm,
             psms: [psm(home[0]), psm(home[1])],
@@ -367,6 +377,11 @@ impl MockDvrk {
     /// The phantom.
     pub fn phantom(&self) -> Phantom {
         self.lock().phantom.clone()
+    }
+
+    /// The needle's shape.
+    pub fn needle_model(&self) -> Needle {
+        self.lock().needle_model
     }
 
     /// The thread's state.
@@ -435,7 +450,9 @@ impl MockDvrk {
         let mut s = self.lock();
         s.thread.caught = false;
         s.thread.tangled = false;
-        s.thread.across = false;
+        // The surgeon lays the slack back, away from the camera.
+        s.thread.sag_dir = -Vector::y();
+        s.thread.pushed_to_y = None;
         for i in 0..2 {
             s.psms[i].setpoint = s.home[i];
             s.psms[i].jaw_rad = 0.0;
@@ -472,6 +489,8 @@ impl MockDvrk {
         }
         let tip = s.needle.pose * s.needle_model.tip();
         s.tip_path = vec![tip];
+        let swage = s.needle.pose * s.needle_model.swage();
+        s.thread.lay(swage);
     }
 
     /// Let go of the needle wherever it is (a slip, a fault): no jaw holds it.
@@ -539,7 +558,15 @@ impl MockDvrk {
             // The other jaw cannot hold a needle that moved away from it: it slips out.
             let other = side.other().index();
             s.needle.grips[other] = None;
+            let was = s.lodged;
             s.lodged = tissue_holding(&s);
+            if let (Some(p), None) = (was, s.lodged) {
+                // Out of the tissue: the thread now leaves the suture line at this exit.
+                let exit = s.phantom.wound.points[p].exit;
+                s.thread.on_extraction(exit);
+            }
+            let swage = s.needle.pose * s.needle_model.swage();
+            s.thread.lay(swage);
         } else if side == Side::Right && s.psms[0].jaw_rad >= SWEEP_MIN_JAW_RAD {
             let d = goal.translation.vector - start.translation.vector;
             let near = s.last_point.is_some_and(|i| {
@@ -548,10 +575,10 @@ impl MockDvrk {
                 (start.translation.vector - mid).xz().norm() < 0.015
             });
             if near && d.y > 0.01 && d.x.abs() < 0.005 && d.z.abs() < 0.005 {
-                let State {
-                    thread, thread_rng, ..
-                } = &mut *s;
-                thread.on_sweep(thread_rng);
+                let from = Point::from(start.translation.vector);
+                s.thread.on_sweep(&from, goal.translation.vector.y);
+                let swage = s.needle.pose * s.needle_model.swage();
+                s.thread.lay(swage);
             }
         }
         s.previous[side.index()] = start;
@@ -593,6 +620,8 @@ impl MockDvrk {
                                 thread, thread_rng, ..
                             } = &mut *s;
                             thread.on_insertion(thread_rng);
+                            let swage = s.needle.pose * s.needle_model.swage();
+                            s.thread.lay(swage);
                         }
                         s.lodged = Some(point);
                         s.last_point = Some(point);
@@ -622,15 +651,10 @@ impl MockDvrk {
                 s.needle.grips[i] = Some(grasp);
                 s.needle.pose = tool * grasp;
             }
-            let jaw_tip = tool * Point::origin();
-            let near_needle = (jaw_tip - s.needle.pose * Point::origin()).norm()
-                <= s.needle_model.radius_m + REGRASP_REGION_M;
-            if s.lodged.is_some() && near_needle {
-                // Closing in the re-grasp region, by the needle, may catch thread lying there.
-                let State {
-                    thread, thread_rng, ..
-                } = &mut *s;
-                thread.on_grasp(thread_rng);
+            if s.lodged.is_some() {
+                // Closing on thread lying at the jaw catches it.
+                let jaw_tip = tool * Point::origin();
+                s.thread.on_grasp(&jaw_tip);
             }
         }
         drop(s);
