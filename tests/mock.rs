@@ -40,7 +40,6 @@ fn tame_thread() -> ThreadConfig {
         ..ThreadConfig::default()
     }
 }
-}
 
 #[test]
 fn perfect_perception_and_no_faults_sutures_all_six_throws() {

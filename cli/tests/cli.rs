@@ -247,8 +247,8 @@ fn a_bad_mock_configuration_says_where() {
     let config = tmp("bad.toml");
     for (toml, says) in [
         (
-            "[scene.thread]\np_sweep_clears = 1.5\n",
-            "thread.p_sweep_clears",
+            "[scene.thread]\np_tangle_per_cinch = 1.5\n",
+            "thread.p_tangle_per_cinch",
         ),
         ("[scene]\nnot_a_key = 1\n", "not_a_key"),
     ] {
