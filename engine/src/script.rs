@@ -79,7 +79,7 @@ pub const API: &[(&str, &str)] = &[
     ),
     (
         "insert",
-        "insert() or insert(#{ rotation: deg(..), push: mm(..) })",
+        "insert() or insert(#{ rotation: deg(..), push: mm(..), standoff: cm(..) })",
     ),
     (
         "sweep",
@@ -87,7 +87,7 @@ pub const API: &[(&str, &str)] = &[
     ),
     (
         "extract",
-        "extract() or extract(#{ retries: 0..5, offset: cm(..), approach: cm(..), rotation: deg(..), min_travel: cm(..) })",
+        "extract() or extract(#{ retries: 0..5, offset: cm(..), approach: cm(..), rotation: deg(..), min_travel: cm(..), pull: cm(..) })",
     ),
     (
         "cinch",
@@ -95,7 +95,7 @@ pub const API: &[(&str, &str)] = &[
     ),
     (
         "handover",
-        "handover() or handover(#{ retries: 0..5, offset: cm(..), jitter: mm(..), normal_tolerance: deg(..) })",
+        "handover() or handover(#{ retries: 0..5, offset: cm(..), jitter: mm(..), normal_tolerance: deg(..), tug: deg(..), inset: deg(..) })",
     ),
     (
         "correct",

@@ -10,10 +10,9 @@ pub use mock::{MockObserver, mock_layout, mock_primitives};
 pub use outcome::{Failure, FailureKind, Measurements, StepOutcome};
 pub use params::*;
 pub use robot::{
-    CINCH_MAX_PULL_M, ESTIMATE_TRIES, EXTRACT_PULL_M, HANDOVER_INSET_RAD, HANDOVER_TUG_RAD,
-    INSERT_STANDOFF_M, Layout, Observer, PassObservation, RETREAT_M, ROTATION_STEP_RAD, Rig,
-    RobotPrimitives, insertion_start, insertion_waypoints, mean_pose, regrasp_waypoints,
-    rotated_about,
+    CINCH_MAX_PULL_M, ESTIMATE_TRIES, Layout, Observer, PassObservation, RETREAT_M,
+    ROTATION_STEP_RAD, Rig, RobotPrimitives, insertion_start, insertion_waypoints, mean_pose,
+    regrasp_waypoints, rotated_about,
 };
 pub use scripted::{Call, OutcomeModel, SCRIPTED_TOKENS, Scripted, ScriptedPrimitives};
 

@@ -20,6 +20,9 @@ pub const INSERT_ROTATION_RAD: f64 = deg(45.0);
 /// 45° rotation, the tip ends p + 12·sin 45° − 10 mm beyond the exit, so the SRC's 5 mm
 /// protrusion needs p ≥ 6.5 mm; 7 mm crosses the exit plane 0.38 mm from the hole.
 pub const INSERT_PUSH_M: f64 = 0.007;
+/// Before insertion the tip waits this far back from the entry (and half as far above it), so
+/// the approach comes from outside the tissue. The paper gives no number; modelling choice.
+pub const INSERT_STANDOFF_M: f64 = 0.01;
 
 // --- Thread Sweeping
 /// Travel of the open jaw along +y down the wound centre. The paper gives no number; modelling
@@ -38,6 +41,9 @@ pub const EXTRACT_APPROACH_M: f64 = 0.015;
 pub const EXTRACT_ROTATION_RAD: f64 = deg(80.0);
 /// Recovery condition ("Motion Failure Recovery"): the endpoint moved less than 2 cm → retry.
 pub const EXTRACT_MIN_TRAVEL_M: f64 = 0.02;
+/// The linear pull that finishes an extraction ("pulled out linearly"; the paper gives no
+/// length; modelling choice 3 cm away from the wound and up).
+pub const EXTRACT_PULL_M: f64 = 0.03;
 /// Retries after a failed extraction ("Motion Failure Recovery": up to 5).
 pub const EXTRACT_RETRIES: u8 = 5;
 
@@ -54,6 +60,15 @@ pub const HANDOVER_OFFSET_M: f64 = 0.01;
 /// Largest random horizontal offset added on a re-attempt ("a small (< 0.5 cm) random
 /// horizontal offset").
 pub const HANDOVER_JITTER_M: f64 = 0.005;
+/// The small rotation that tests a handover grasp: if the right jaw holds the needle, the
+/// needle's normal turns with it. The paper compares normals "before and after moving the
+/// right needle driver" without a number; modelling choice 20°, well above the estimator's
+/// normal noise.
+pub const HANDOVER_TUG_RAD: f64 = deg(20.0);
+/// How far in from the needle's end the handover grasps it, along the arc: the blades must
+/// close on wire, not on the very end. The paper says "the endpoint"; modelling choice 20°
+/// (4 mm of a 12 mm needle).
+pub const HANDOVER_INSET_RAD: f64 = deg(20.0);
 /// Re-attempts after a failed grasp ("up to 5 additional times").
 pub const HANDOVER_RETRIES: u8 = 5;
 /// Below this change the needle normal counts as "unchanged" (the grasp did not take). The
@@ -147,12 +162,15 @@ pub struct InsertParams {
     pub rotation_rad: f64,
     /// Straight push along entry→exit before rotating, m.
     pub push_m: f64,
+    /// Stand-off of the tip from the entry before it goes in, m.
+    pub standoff_m: f64,
 }
 impl Default for InsertParams {
     fn default() -> Self {
         Self {
             rotation_rad: INSERT_ROTATION_RAD,
             push_m: INSERT_PUSH_M,
+            standoff_m: INSERT_STANDOFF_M,
         }
     }
 }
@@ -187,6 +205,8 @@ pub struct ExtractParams {
     pub rotation_rad: f64,
     /// Recovery condition: an endpoint travel below this is retried, m.
     pub min_travel_m: f64,
+    /// The final linear pull, m.
+    pub pull_m: f64,
 }
 impl Default for ExtractParams {
     fn default() -> Self {
@@ -196,6 +216,7 @@ impl Default for ExtractParams {
             approach_m: EXTRACT_APPROACH_M,
             rotation_rad: EXTRACT_ROTATION_RAD,
             min_travel_m: EXTRACT_MIN_TRAVEL_M,
+            pull_m: EXTRACT_PULL_M,
         }
     }
 }
@@ -234,6 +255,10 @@ pub struct HandoverParams {
     pub jitter_m: f64,
     /// A normal change below this counts as "unchanged", rad.
     pub normal_tolerance_rad: f64,
+    /// The test rotation after closing, rad.
+    pub tug_rad: f64,
+    /// How far in from the end the grasp is, along the arc, rad.
+    pub inset_rad: f64,
 }
 impl Default for HandoverParams {
     fn default() -> Self {
@@ -242,6 +267,8 @@ impl Default for HandoverParams {
             offset_m: HANDOVER_OFFSET_M,
             jitter_m: HANDOVER_JITTER_M,
             normal_tolerance_rad: HANDOVER_NORMAL_TOLERANCE_RAD,
+            tug_rad: HANDOVER_TUG_RAD,
+            inset_rad: HANDOVER_INSET_RAD,
         }
     }
 }
@@ -386,6 +413,7 @@ impl StepKind {
         Some(match (self, name) {
             (StepKind::Insert(p), "rotation") => A(p.rotation_rad),
             (StepKind::Insert(p), "push") => L(p.push_m),
+            (StepKind::Insert(p), "standoff") => L(p.standoff_m),
             (StepKind::Sweep(p), "distance") => L(p.distance_m),
             (StepKind::Sweep(p), "jaw_open") => A(p.jaw_open_rad),
             (StepKind::Extract(p), "retries") => C(i64::from(p.retries)),
@@ -393,12 +421,15 @@ impl StepKind {
             (StepKind::Extract(p), "approach") => L(p.approach_m),
             (StepKind::Extract(p), "rotation") => A(p.rotation_rad),
             (StepKind::Extract(p), "min_travel") => L(p.min_travel_m),
+            (StepKind::Extract(p), "pull") => L(p.pull_m),
             (StepKind::Cinch(p), "l_des") => L(p.l_des_m),
             (StepKind::Cinch(p), "l_each") => L(p.l_each_m),
             (StepKind::Handover(p), "retries") => C(i64::from(p.retries)),
             (StepKind::Handover(p), "offset") => L(p.offset_m),
             (StepKind::Handover(p), "jitter") => L(p.jitter_m),
             (StepKind::Handover(p), "normal_tolerance") => A(p.normal_tolerance_rad),
+            (StepKind::Handover(p), "tug") => A(p.tug_rad),
+            (StepKind::Handover(p), "inset") => A(p.inset_rad),
             (StepKind::Correct(p), "samples") => C(i64::from(p.samples)),
             (StepKind::Correct(p), "final_rotation") => A(p.final_rotation_rad),
             (StepKind::EstimateNeedle(p), "samples") => C(i64::from(p.samples)),
@@ -419,6 +450,7 @@ impl StepKind {
         match (self, name, value) {
             (StepKind::Insert(p), "rotation", A(v)) => p.rotation_rad = v,
             (StepKind::Insert(p), "push", L(v)) => p.push_m = v,
+            (StepKind::Insert(p), "standoff", L(v)) => p.standoff_m = v,
             (StepKind::Sweep(p), "distance", L(v)) => p.distance_m = v,
             (StepKind::Sweep(p), "jaw_open", A(v)) => p.jaw_open_rad = v,
             (StepKind::Extract(p), "retries", C(v)) => p.retries = sat8(v),
@@ -426,12 +458,15 @@ impl StepKind {
             (StepKind::Extract(p), "approach", L(v)) => p.approach_m = v,
             (StepKind::Extract(p), "rotation", A(v)) => p.rotation_rad = v,
             (StepKind::Extract(p), "min_travel", L(v)) => p.min_travel_m = v,
+            (StepKind::Extract(p), "pull", L(v)) => p.pull_m = v,
             (StepKind::Cinch(p), "l_des", L(v)) => p.l_des_m = v,
             (StepKind::Cinch(p), "l_each", L(v)) => p.l_each_m = v,
             (StepKind::Handover(p), "retries", C(v)) => p.retries = sat8(v),
             (StepKind::Handover(p), "offset", L(v)) => p.offset_m = v,
             (StepKind::Handover(p), "jitter", L(v)) => p.jitter_m = v,
             (StepKind::Handover(p), "normal_tolerance", A(v)) => p.normal_tolerance_rad = v,
+            (StepKind::Handover(p), "tug", A(v)) => p.tug_rad = v,
+            (StepKind::Handover(p), "inset", A(v)) => p.inset_rad = v,
             (StepKind::Correct(p), "samples", C(v)) => p.samples = sat32(v),
             (StepKind::Correct(p), "final_rotation", A(v)) => p.final_rotation_rad = v,
             (StepKind::EstimateNeedle(p), "samples", C(v)) => p.samples = sat32(v),
@@ -476,6 +511,13 @@ pub fn param_specs(name: &str) -> &'static [ParamSpec] {
             0.0005,
             0.02,
             "straight push of the tip along entry→exit"
+        ),
+        spec!(
+            "standoff",
+            Length,
+            0.002,
+            0.03,
+            "stand-off of the tip from the entry before it goes in"
         ),
     ];
     const SWEEP: &[ParamSpec] = &[
@@ -530,6 +572,7 @@ pub fn param_specs(name: &str) -> &'static [ParamSpec] {
             0.05,
             "endpoint travel below which extraction is retried"
         ),
+        spec!("pull", Length, 0.005, 0.06, "final linear pull away and up"),
     ];
     const CINCH: &[ParamSpec] = &[
         spec!(
@@ -569,6 +612,20 @@ pub fn param_specs(name: &str) -> &'static [ParamSpec] {
             deg(0.1),
             deg(20.0),
             "a normal change below this is \"unchanged\""
+        ),
+        spec!(
+            "tug",
+            Angle,
+            deg(5.0),
+            deg(45.0),
+            "test rotation after closing"
+        ),
+        spec!(
+            "inset",
+            Angle,
+            deg(0.0),
+            deg(60.0),
+            "grasp this far in from the end, along the arc"
         ),
     ];
     const CORRECT: &[ParamSpec] = &[

@@ -22,25 +22,12 @@ use stitch_robot::{Arm, Jaw, Needle, Point, Pose, RobotError, Vector, WoundPoint
 /// Rotations are streamed as move_cp waypoints this far apart, so the tool follows the arc
 /// closely (chord error r·(1 − cos 2.5°) ≈ 0.01 mm for the 12 mm needle), rad.
 pub const ROTATION_STEP_RAD: f64 = 5.0 * std::f64::consts::PI / 180.0;
-/// Before insertion the tip waits this far back from the entry, along entry→exit and above
-/// it, so the approach comes from outside the tissue (modelling choice), m.
-pub const INSERT_STANDOFF_M: f64 = 0.01;
 /// A primitive waits up to this many estimator cycles for a needle estimate before it
 /// reports a perception dropout (the paper's estimator ran continuously at 0.67 Hz;
 /// modelling choice: 3 cycles, 4.5 s).
 pub const ESTIMATE_TRIES: usize = 3;
 /// How far a driver backs off after letting go or after a failed grasp (modelling choice), m.
 pub const RETREAT_M: f64 = 0.02;
-/// The linear pull that finishes an extraction ("pulled out linearly"; modelling choice 3 cm
-/// away from the wound and up), m.
-pub const EXTRACT_PULL_M: f64 = 0.03;
-/// The small rotation of the right driver that tests a handover grasp: if it holds the needle,
-/// the needle's normal turns with it ("Needle Handover"; modelling choice 20°, well above the
-/// estimator's normal noise), rad.
-pub const HANDOVER_TUG_RAD: f64 = 20.0 * std::f64::consts::PI / 180.0;
-/// How far in from the needle's end the handover grasps it, along the arc: the blades must
-/// close on wire, not on the end (modelling choice: 20°, 4 mm of a 12 mm needle), rad.
-pub const HANDOVER_INSET_RAD: f64 = 20.0 * std::f64::consts::PI / 180.0;
 /// The longest pull a cinch makes in one motion (modelling choice: the workspace's reach), m.
 pub const CINCH_MAX_PULL_M: f64 = 0.05;
 
@@ -211,7 +198,7 @@ pub fn insertion_waypoints(
     let u = horizontal(point.exit - point.entry).unwrap_or_else(Vector::x);
     let standoff = shifted(
         &start,
-        -u * INSERT_STANDOFF_M + Vector::z() * (INSERT_STANDOFF_M / 2.0),
+        -u * p.standoff_m + Vector::z() * (p.standoff_m / 2.0),
     );
     let pushed = shifted(&start, u * p.push_m);
     let needle_pushed = pushed * grasp;
@@ -368,7 +355,7 @@ impl RobotPrimitives {
         Self::moves(&self.rig.left, &turn)?;
         let last = turn.last().copied().unwrap_or(grasp);
         let away = horizontal(from - regrasp).unwrap_or_else(Vector::x);
-        let pull = (away + Vector::z()).normalize() * EXTRACT_PULL_M;
+        let pull = (away + Vector::z()).normalize() * p.pull_m;
         Self::moves(&self.rig.left, &[shifted(&last, pull)])?;
         // If no estimate comes, the left jaw keeps whatever it holds: the needle may be out.
         let after = self.estimate()?;
@@ -452,9 +439,9 @@ impl RobotPrimitives {
         // along the arc so the blades close on wire; approached across the needle's plane.
         let far_is_tip = (tip - left).norm() >= (swage - left).norm();
         let angle = if far_is_tip {
-            HANDOVER_INSET_RAD
+            p.inset_rad
         } else {
-            std::f64::consts::PI - HANDOVER_INSET_RAD
+            std::f64::consts::PI - p.inset_rad
         };
         let regrasp = before.pose * self.rig.needle.point_at(angle);
         let h = horizontal(n0)
@@ -479,7 +466,7 @@ impl RobotPrimitives {
         Self::moves(&self.rig.right, &[off, at])?;
         let _ = self.rig.right_jaw.close().map_err(fault)?;
         // Tug: turn the right driver a little about a horizontal axis across its approach.
-        let tug = rotated_about(&at, &target, &Vector::z().cross(&h), HANDOVER_TUG_RAD);
+        let tug = rotated_about(&at, &target, &Vector::z().cross(&h), p.tug_rad);
         Self::moves(&self.rig.right, &[tug])?;
         let after = self.estimate()?;
         let n1 = after.features(&self.rig.needle).1;
@@ -648,6 +635,7 @@ mod tests {
         let p = InsertParams {
             rotation_rad: 45f64.to_radians(),
             push_m: 7.0 * MM,
+            standoff_m: 10.0 * MM,
         };
         let w = insertion_waypoints(&needle, &grasp, &point(), &p);
         assert_eq!(w.len(), 3 + 9, "stand-off, start, push, nine 5° steps");
