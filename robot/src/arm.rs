@@ -1,6 +1,7 @@
 //! The arm: CRTK Cartesian commands and measurements, as the dVRK names them.
 
 use crate::{Pose, RobotError};
+use serde::{Deserialize, Serialize};
 use std::fmt::Debug;
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
@@ -52,7 +53,8 @@ impl MoveHandle {
 }
 
 /// Limits on Cartesian speed.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct SpeedLimits {
     /// Tool-tip linear speed, m/s.
     pub linear_m_per_s: f64,
@@ -83,6 +85,37 @@ pub trait Arm: Send + Sync {
         })
     }
 }
+
+/// Forwards every call, so `Arc<dyn Arm>` (and `Box`, `&`) can be wrapped in
+/// [`crate::WorkspaceLimit`] and [`crate::SpeedLimit`].
+macro_rules! forward_arm {
+    ($($ptr:ty),*) => {$(
+        impl<T: Arm + ?Sized> Arm for $ptr {
+            fn name(&self) -> &str {
+                (**self).name()
+            }
+            fn measured_cp(&self) -> Result<Pose, RobotError> {
+                (**self).measured_cp()
+            }
+            fn setpoint_cp(&self) -> Result<Pose, RobotError> {
+                (**self).setpoint_cp()
+            }
+            fn move_cp(&self, goal: &Pose) -> Result<MoveHandle, RobotError> {
+                (**self).move_cp(goal)
+            }
+            fn servo_cp(&self, goal: &Pose) -> Result<(), RobotError> {
+                (**self).servo_cp(goal)
+            }
+            fn hold(&self) -> Result<(), RobotError> {
+                (**self).hold()
+            }
+            fn set_max_speed(&self, limits: SpeedLimits) -> Result<(), RobotError> {
+                (**self).set_max_speed(limits)
+            }
+        }
+    )*};
+}
+forward_arm!(Arc<T>, Box<T>, &T);
 
 /// A command a [`DummyArm`] received.
 #[derive(Clone, Debug, PartialEq)]

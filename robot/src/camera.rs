@@ -109,6 +109,21 @@ pub trait StereoCamera: Send + Sync {
     fn capture(&self) -> Result<StereoFrame, RobotError>;
 }
 
+/// Forwards every call, so `Arc<dyn StereoCamera>` (and `Box`, `&`) is a camera too.
+macro_rules! forward_camera {
+    ($($ptr:ty),*) => {$(
+        impl<T: StereoCamera + ?Sized> StereoCamera for $ptr {
+            fn calibration(&self) -> &StereoCalibration {
+                (**self).calibration()
+            }
+            fn capture(&self) -> Result<StereoFrame, RobotError> {
+                (**self).capture()
+            }
+        }
+    )*};
+}
+forward_camera!(std::sync::Arc<T>, Box<T>, &T);
+
 /// A camera that returns black frames of its calibration's size, counting captures.
 #[derive(Debug)]
 pub struct DummyCamera {

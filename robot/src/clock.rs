@@ -14,6 +14,21 @@ pub trait Clock: Send + Sync + Debug {
     fn sleep(&self, d: Duration);
 }
 
+/// Forwards every call, so `Arc<dyn Clock>` (and `Box`, `&`) is a [`Clock`] too.
+macro_rules! forward_clock {
+    ($($ptr:ty),*) => {$(
+        impl<T: Clock + ?Sized> Clock for $ptr {
+            fn now(&self) -> Duration {
+                (**self).now()
+            }
+            fn sleep(&self, d: Duration) {
+                (**self).sleep(d)
+            }
+        }
+    )*};
+}
+forward_clock!(Arc<T>, Box<T>, &T);
+
 /// A simulated clock. Clones share one time; nothing moves it but [`SimClock::advance`],
 /// [`SimClock::set`] and [`Clock::sleep`].
 #[derive(Clone, Debug, Default)]

@@ -26,6 +26,30 @@ pub trait Jaw: Send + Sync {
     }
 }
 
+/// Forwards every call, so `Arc<dyn Jaw>` (and `Box`, `&`) is a [`Jaw`] too.
+macro_rules! forward_jaw {
+    ($($ptr:ty),*) => {$(
+        impl<T: Jaw + ?Sized> Jaw for $ptr {
+            fn name(&self) -> &str {
+                (**self).name()
+            }
+            fn measured_jp(&self) -> Result<f64, RobotError> {
+                (**self).measured_jp()
+            }
+            fn move_jp(&self, angle_rad: f64) -> Result<MoveHandle, RobotError> {
+                (**self).move_jp(angle_rad)
+            }
+            fn open(&self) -> Result<MoveHandle, RobotError> {
+                (**self).open()
+            }
+            fn close(&self) -> Result<MoveHandle, RobotError> {
+                (**self).close()
+            }
+        }
+    )*};
+}
+forward_jaw!(std::sync::Arc<T>, Box<T>, &T);
+
 /// A jaw that records what it is told and is wherever it was last told to be.
 #[derive(Debug)]
 pub struct DummyJaw {

@@ -2,11 +2,13 @@
 //! the same limits: a workspace box and a maximum speed, each with an error or clamp policy.
 
 use crate::{Arm, Clock, MoveHandle, Point, Pose, RobotError, SpeedLimits};
+use serde::{Deserialize, Serialize};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
 
 /// What a wrapper does with a command beyond its limit.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
 pub enum LimitPolicy {
     /// Refuse it with an error; nothing reaches the arm.
     Error,
@@ -14,8 +16,10 @@ pub enum LimitPolicy {
     Clamp,
 }
 
-/// An axis-aligned box the tool tip must stay in, robot frame, m.
-#[derive(Clone, Copy, Debug, PartialEq)]
+/// An axis-aligned box the tool tip must stay in, robot frame, m. Deserialising validates it
+/// as [`Workspace::new`] does.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(try_from = "WorkspaceFields")]
 pub struct Workspace {
     /// Lower corner, m.
     pub min: Point,
@@ -50,6 +54,21 @@ impl Workspace {
             p.y.clamp(self.min.y, self.max.y),
             p.z.clamp(self.min.z, self.max.z),
         )
+    }
+}
+
+/// A [`Workspace`] as read, before it is checked.
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct WorkspaceFields {
+    min: Point,
+    max: Point,
+}
+
+impl TryFrom<WorkspaceFields> for Workspace {
+    type Error = RobotError;
+    fn try_from(f: WorkspaceFields) -> Result<Self, RobotError> {
+        Workspace::new(f.min, f.max)
     }
 }
 
@@ -211,14 +230,14 @@ impl<A: Arm> Arm for SpeedLimit<A> {
     fn servo_cp(&self, goal: &Pose) -> Result<(), RobotError> {
         finite_pose(self.inner.name(), goal)?;
         let now = self.clock.now();
-        let (prev_t, prev) = match *self.last() {
-            Some(last) => last,
-            None => (
-                now.saturating_sub(self.nominal_period),
-                self.inner.setpoint_cp()?,
-            ),
+        // Copy out of the lock before asking the arm anything.
+        let last = *self.last();
+        let (dt, prev) = match last {
+            Some((prev_t, prev)) => (now.saturating_sub(prev_t), prev),
+            // The clock may be at its epoch, so the first step's period is not `now − period`.
+            None => (self.nominal_period, self.inner.setpoint_cp()?),
         };
-        let dt = now.saturating_sub(prev_t).as_secs_f64();
+        let dt = dt.as_secs_f64();
         let step = goal.translation.vector - prev.translation.vector;
         let turn = prev.rotation.angle_to(&goal.rotation);
         let (lin, ang) = if dt > 0.0 {
@@ -386,5 +405,143 @@ mod tests {
             matches!(cmds[0], ArmCommand::SetMaxSpeed(l) if (l.linear_m_per_s - 0.05).abs() < 1e-12)
         );
         assert!(matches!(cmds[1], ArmCommand::MoveCp(_)));
+    }
+
+    /// An arm whose backend cannot bound trajectory speed (the trait's default).
+    #[derive(Debug)]
+    struct NoSpeedBound(DummyArm);
+    impl Arm for NoSpeedBound {
+        fn name(&self) -> &str {
+            self.0.name()
+        }
+        fn measured_cp(&self) -> Result<Pose, RobotError> {
+            self.0.measured_cp()
+        }
+        fn setpoint_cp(&self) -> Result<Pose, RobotError> {
+            self.0.setpoint_cp()
+        }
+        fn move_cp(&self, goal: &Pose) -> Result<MoveHandle, RobotError> {
+            self.0.move_cp(goal)
+        }
+        fn servo_cp(&self, goal: &Pose) -> Result<(), RobotError> {
+            self.0.servo_cp(goal)
+        }
+        fn hold(&self) -> Result<(), RobotError> {
+            self.0.hold()
+        }
+    }
+
+    #[test]
+    fn move_cp_is_refused_when_the_backend_cannot_bound_its_speed() {
+        let arm = SpeedLimit::new(
+            NoSpeedBound(DummyArm::new("PSM1")),
+            Arc::new(SimClock::new()),
+            SpeedLimits {
+                linear_m_per_s: 0.05,
+                angular_rad_per_s: 1.0,
+            },
+            LimitPolicy::Clamp,
+        )
+        .expect("limits");
+        let e = arm.move_cp(&at(0.0, 0.05, 0.0)).expect_err("unsupported");
+        assert!(matches!(e, RobotError::Unsupported { .. }), "{e}");
+        assert!(arm.inner().0.commands().is_empty());
+        // Streaming still works: the wrapper checks each servo step itself.
+        arm.servo_cp(&at(0.0, 0.0, 0.0)).expect("servo");
+    }
+
+    #[test]
+    fn a_servo_turn_too_fast_for_the_angular_limit_is_refused_with_units() {
+        let (arm, clock) = limited(LimitPolicy::Error);
+        arm.servo_cp(&at(0.0, 0.0, 0.0)).expect("first");
+        clock.advance(Duration::from_millis(100));
+        // 0.2 rad in 0.1 s = 2 rad/s against 1 rad/s.
+        let turned = Pose::from_parts(
+            Translation3::identity(),
+            nalgebra::UnitQuaternion::from_axis_angle(&crate::Vector::z_axis(), 0.2),
+        );
+        let e = arm.servo_cp(&turned).expect_err("too fast");
+        assert_eq!(
+            e.to_string(),
+            "PSM2: commanded angular speed 2.0000 exceeds the limit 1.0000 (rad/s)"
+        );
+    }
+
+    #[test]
+    fn a_servo_step_with_no_time_elapsed_is_refused_or_held_in_place() {
+        let (arm, _) = limited(LimitPolicy::Error);
+        arm.servo_cp(&at(0.0, 0.0, 0.0)).expect("first");
+        assert!(matches!(
+            arm.servo_cp(&at(0.001, 0.0, 0.0)),
+            Err(RobotError::TooFast { .. })
+        ));
+        let (arm, _) = limited(LimitPolicy::Clamp);
+        arm.servo_cp(&at(0.0, 0.0, 0.0)).expect("first");
+        arm.servo_cp(&at(0.001, 0.0, 0.0)).expect("clamped");
+        assert_eq!(
+            arm.inner().commands().last(),
+            Some(&ArmCommand::ServoCp(at(0.0, 0.0, 0.0)))
+        );
+    }
+
+    #[test]
+    fn the_first_servo_step_is_measured_from_the_setpoint_over_one_nominal_period() {
+        let (arm, _) = limited(LimitPolicy::Error);
+        // 0.05 m/s over 10 ms allows 0.5 mm from the identity setpoint.
+        arm.servo_cp(&at(0.0004, 0.0, 0.0)).expect("within");
+        arm.hold().expect("hold");
+        assert!(arm.servo_cp(&at(0.0008, 0.0, 0.0)).is_ok());
+        arm.hold().expect("hold");
+        // 0.6 mm from the setpoint at 0.8 mm is too far for one period.
+        assert!(arm.servo_cp(&at(0.0014, 0.0, 0.0)).is_err());
+    }
+
+    #[test]
+    fn wrappers_compose_over_a_shared_dyn_arm() {
+        let dummy = Arc::new(DummyArm::new("PSM1"));
+        let shared: Arc<dyn Arm> = dummy.clone();
+        let clock = SimClock::new();
+        let ws =
+            Workspace::new(Point::new(-0.1, -0.1, -0.2), Point::new(0.1, 0.1, 0.0)).expect("box");
+        let arm: Arc<dyn Arm> = Arc::new(
+            SpeedLimit::new(
+                WorkspaceLimit::new(shared, ws, LimitPolicy::Error),
+                Arc::new(clock.clone()),
+                SpeedLimits {
+                    linear_m_per_s: 0.05,
+                    angular_rad_per_s: 1.0,
+                },
+                LimitPolicy::Error,
+            )
+            .expect("limits"),
+        );
+        assert_eq!(arm.name(), "PSM1");
+        assert!(matches!(
+            arm.move_cp(&at(0.5, 0.0, -0.1)),
+            Err(RobotError::OutOfWorkspace { .. })
+        ));
+        let _ = arm.move_cp(&at(0.05, 0.0, -0.1)).expect("inside");
+        arm.hold().expect("hold");
+        assert_eq!(arm.measured_cp().expect("pose"), at(0.05, 0.0, -0.1));
+        // The refused goal reached nothing but the speed bound the wrapper set first.
+        let sent: Vec<_> = dummy
+            .commands()
+            .into_iter()
+            .filter(|c| !matches!(c, ArmCommand::SetMaxSpeed(_)))
+            .collect();
+        assert_eq!(
+            sent,
+            [ArmCommand::MoveCp(at(0.05, 0.0, -0.1)), ArmCommand::Hold]
+        );
+    }
+
+    #[test]
+    fn workspaces_are_checked_when_read() {
+        assert!(Workspace::new(Point::new(0.0, 0.0, f64::NAN), Point::new(1.0, 1.0, 1.0)).is_err());
+        assert!(Workspace::new(Point::new(0.0, 2.0, 0.0), Point::new(1.0, 1.0, 1.0)).is_err());
+        let ws =
+            Workspace::new(Point::new(-0.1, -0.1, -0.2), Point::new(0.1, 0.1, 0.0)).expect("box");
+        assert!(ws.contains(&Point::new(0.1, -0.1, -0.2)));
+        assert!(!ws.contains(&Point::new(0.0, 0.0, 0.01)));
     }
 }

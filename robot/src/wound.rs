@@ -151,4 +151,31 @@ mod tests {
             .is_err()
         );
     }
+
+    #[test]
+    fn the_default_wound_is_six_sites_8_mm_apart_with_a_10_mm_bite() {
+        let spec = WoundSpec::default();
+        let w = Wound::linear(&spec).expect("valid");
+        assert_eq!(w.len(), 6);
+        assert!(!w.is_empty());
+        let last = w.iter().last().expect("six");
+        assert_eq!(last.index, 5);
+        let o = spec.origin;
+        assert!((last.entry - Point::new(o.x - 0.005, o.y + 0.040, o.z)).norm() < 1e-12);
+        assert!((last.exit - last.entry).norm() - 0.010 < 1e-12);
+        assert!(
+            Wound::linear(&WoundSpec {
+                count: 21,
+                ..spec.clone()
+            })
+            .is_err()
+        );
+        assert!(
+            Wound::linear(&WoundSpec {
+                spacing_m: 0.2,
+                ..spec
+            })
+            .is_err()
+        );
+    }
 }
