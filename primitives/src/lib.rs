@@ -10,7 +10,7 @@ pub use mock::{MockObserver, mock_layout, mock_primitives};
 pub use outcome::{Failure, FailureKind, Measurements, StepOutcome};
 pub use params::*;
 pub use robot::{
-    CINCH_MAX_PULL_M, ESTIMATE_TRIES, Layout, Observer, PassObservation, RETREAT_M,
+    CINCH_MAX_PULL_M, ESTIMATE_TRIES, Layout, MOTION_TIMEOUT, Observer, PassObservation, RETREAT_M,
     ROTATION_STEP_RAD, Rig, RobotPrimitives, insertion_start, insertion_waypoints, mean_pose,
     regrasp_waypoints, rotated_about,
 };

@@ -17,7 +17,7 @@ use rand_chacha::ChaCha8Rng;
 use std::sync::Arc;
 use stitch_perception::{NeedleEstimate, NeedleEstimator};
 use stitch_robot::nalgebra::{Rotation3, Translation3, Unit, UnitQuaternion};
-use stitch_robot::{Arm, Jaw, Needle, Point, Pose, RobotError, Vector, WoundPoint};
+use stitch_robot::{Arm, Jaw, MoveHandle, Needle, Point, Pose, RobotError, Vector, WoundPoint};
 
 /// Rotations are streamed as move_cp waypoints this far apart, so the tool follows the arc
 /// closely (chord error r·(1 − cos 2.5°) ≈ 0.01 mm for the 12 mm needle), rad.
@@ -26,6 +26,9 @@ pub const ROTATION_STEP_RAD: f64 = 5.0 * std::f64::consts::PI / 180.0;
 /// reports a perception dropout (the paper's estimator ran continuously at 0.67 Hz;
 /// modelling choice: 3 cycles, 4.5 s).
 pub const ESTIMATE_TRIES: usize = 3;
+/// The longest a primitive waits for one motion to finish before it reports an arm fault
+/// (modelling choice: the slowest move of the workspace at the mock's 2 cm/s is about 10 s).
+pub const MOTION_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(30);
 /// How far a driver backs off after letting go or after a failed grasp (modelling choice), m.
 pub const RETREAT_M: f64 = 0.02;
 /// The longest pull a cinch makes in one motion (modelling choice: the workspace's reach), m.
@@ -139,6 +142,12 @@ fn failed(kind: FailureKind) -> Failure {
 /// A pose at `p` with rotation `r`.
 fn pose(p: Point, r: UnitQuaternion<f64>) -> Pose {
     Pose::from_parts(Translation3::from(p.coords), r)
+}
+
+/// Wait for a motion to finish, at most [`MOTION_TIMEOUT`]; a robot error or a timeout is an
+/// arm fault.
+fn finish(handle: Result<MoveHandle, RobotError>) -> Step<()> {
+    handle.and_then(|h| h.wait(MOTION_TIMEOUT)).map_err(fault)
 }
 
 /// `t` moved by `v` (robot frame).
@@ -267,7 +276,7 @@ impl RobotPrimitives {
 
     fn moves(arm: &Arc<dyn Arm>, poses: &[Pose]) -> Step<()> {
         for p in poses {
-            let _ = arm.move_cp(p).map_err(fault)?;
+            finish(arm.move_cp(p))?;
         }
         Ok(())
     }
@@ -284,7 +293,7 @@ impl RobotPrimitives {
             o.begin_pass();
         }
         Self::moves(&self.rig.right, &waypoints[1..])?;
-        let _ = self.rig.right_jaw.open().map_err(fault)?;
+        finish(self.rig.right_jaw.open())?;
         let last = waypoints.last().copied().unwrap_or(tool);
         Self::moves(&self.rig.right, &[shifted(&last, Vector::z() * RETREAT_M)])?;
         let mut measured = Measurements::default();
@@ -312,7 +321,7 @@ impl RobotPrimitives {
             mid + Vector::new(0.0, 0.005, 0.004),
             pointing(&-Vector::z()),
         );
-        let _ = self.rig.right_jaw.move_jp(p.jaw_open_rad).map_err(fault)?;
+        finish(self.rig.right_jaw.move_jp(p.jaw_open_rad))?;
         Self::moves(
             &self.rig.right,
             &[start, shifted(&start, Vector::y() * p.distance_m)],
@@ -320,7 +329,7 @@ impl RobotPrimitives {
         // Lift clear of the thread pushed ahead of the jaw before closing it.
         let end = shifted(&start, Vector::y() * p.distance_m + Vector::z() * RETREAT_M);
         Self::moves(&self.rig.right, &[end])?;
-        let _ = self.rig.right_jaw.close().map_err(fault)?;
+        finish(self.rig.right_jaw.close())?;
         match self.problem() {
             Some(kind) => Err(failed(kind)),
             None => Ok(Measurements::default()),
@@ -338,9 +347,9 @@ impl RobotPrimitives {
             (swage, false)
         };
         let [off, grasp] = regrasp_waypoints(&regrasp, &from, p.offset_m, p.approach_m);
-        let _ = self.rig.left_jaw.open().map_err(fault)?;
+        finish(self.rig.left_jaw.open())?;
         Self::moves(&self.rig.left, &[off, grasp])?;
-        let _ = self.rig.left_jaw.close().map_err(fault)?;
+        finish(self.rig.left_jaw.close())?;
         let steps = (p.rotation_rad.abs() / ROTATION_STEP_RAD).ceil().max(1.0) as usize;
         let turn: Vec<Pose> = (1..=steps)
             .map(|k| {
@@ -380,7 +389,7 @@ impl RobotPrimitives {
         }
         if still_in || travel < p.min_travel_m {
             // Let go and back off, ready for a retry.
-            let _ = self.rig.left_jaw.open().map_err(fault)?;
+            finish(self.rig.left_jaw.open())?;
             Self::moves(&self.rig.left, &[off])?;
             let kind = if travel < p.min_travel_m {
                 FailureKind::NoProgress
@@ -462,9 +471,9 @@ impl RobotPrimitives {
         };
         let target = regrasp + jitter;
         let [off, at] = regrasp_waypoints(&target, &(target + h), p.offset_m, p.offset_m);
-        let _ = self.rig.right_jaw.open().map_err(fault)?;
+        finish(self.rig.right_jaw.open())?;
         Self::moves(&self.rig.right, &[off, at])?;
-        let _ = self.rig.right_jaw.close().map_err(fault)?;
+        finish(self.rig.right_jaw.close())?;
         // Tug: turn the right driver a little about a horizontal axis across its approach.
         let tug = rotated_about(&at, &target, &Vector::z().cross(&h), p.tug_rad);
         Self::moves(&self.rig.right, &[tug])?;
@@ -477,14 +486,14 @@ impl RobotPrimitives {
         };
         if change <= p.normal_tolerance_rad {
             // The grasp did not take: let go, pull back.
-            let _ = self.rig.right_jaw.open().map_err(fault)?;
+            finish(self.rig.right_jaw.open())?;
             Self::moves(&self.rig.right, &[off])?;
             return Err(Failure {
                 kind: FailureKind::NoProgress,
                 measured,
             });
         }
-        let _ = self.rig.left_jaw.open().map_err(fault)?;
+        finish(self.rig.left_jaw.open())?;
         let ready = pose(self.rig.layout.left_ready, UnitQuaternion::identity());
         Self::moves(&self.rig.left, &[ready])?;
         match self.problem() {

@@ -235,3 +235,74 @@ fn correction_takes_the_needle_to_the_corner_aligns_its_normal_with_y_and_turns_
     );
     assert!(same(&m[2], &turned));
 }
+
+/// A motion that never finishes: its tracker reports a timeout at once.
+#[derive(Debug)]
+struct Stuck;
+impl stitch_robot::MotionTracker for Stuck {
+    fn is_busy(&self) -> bool {
+        true
+    }
+    fn wait(&self, timeout: Duration) -> Result<(), stitch_robot::RobotError> {
+        Err(stitch_robot::RobotError::Timeout {
+            arm: "PSM1".into(),
+            after_s: timeout.as_secs_f64(),
+        })
+    }
+    fn stop(&self) -> Result<(), stitch_robot::RobotError> {
+        Ok(())
+    }
+}
+
+/// An arm whose every motion gets stuck.
+struct StuckArm(DummyArm);
+impl stitch_robot::Arm for StuckArm {
+    fn name(&self) -> &str {
+        "PSM1"
+    }
+    fn measured_cp(&self) -> Result<Pose, stitch_robot::RobotError> {
+        self.0.measured_cp()
+    }
+    fn setpoint_cp(&self) -> Result<Pose, stitch_robot::RobotError> {
+        self.0.setpoint_cp()
+    }
+    fn move_cp(&self, goal: &Pose) -> Result<stitch_robot::MoveHandle, stitch_robot::RobotError> {
+        let _ = self.0.move_cp(goal)?;
+        Ok(stitch_robot::MoveHandle::new(Arc::new(Stuck)))
+    }
+    fn servo_cp(&self, goal: &Pose) -> Result<(), stitch_robot::RobotError> {
+        self.0.servo_cp(goal)
+    }
+    fn hold(&self) -> Result<(), stitch_robot::RobotError> {
+        self.0.hold()
+    }
+}
+
+#[test]
+fn a_motion_that_never_finishes_stops_the_step_as_an_arm_fault() {
+    let right = Arc::new(StuckArm(DummyArm::new("PSM1")));
+    let left = Arc::new(DummyArm::new("PSM2"));
+    let estimator = Box::new(Fixed(at(0.0, 0.0, -0.1)));
+    let mut p = RobotPrimitives::new(Rig {
+        right: right.clone(),
+        left,
+        right_jaw: Arc::new(DummyJaw::new("PSM1/jaw")),
+        left_jaw: Arc::new(DummyJaw::new("PSM2/jaw")),
+        estimator,
+        observer: None,
+        needle: Needle::default(),
+        layout: layout(),
+        rng: rand_chacha::ChaCha8Rng::seed_from_u64(1),
+    });
+    match run(&mut p, StepKind::default_for("insert").expect("insert")) {
+        StepOutcome::Failed(f) => match f.kind {
+            FailureKind::ArmFault { message } => {
+                assert!(message.contains("did not finish within 30"), "{message}")
+            }
+            other => panic!("{other:?}"),
+        },
+        other => panic!("{other:?}"),
+    }
+    // It gave up after the first move: no further motion was sent.
+    assert_eq!(right.0.commands().len(), 1);
+}
