@@ -50,8 +50,8 @@ fn layout() -> Layout {
 }
 
 fn rig(
-    right: Arc<DummyArm>,
-    left: Arc<DummyArm>,
+    right: Arc<dyn stitch_robot::Arm>,
+    left: Arc<dyn stitch_robot::Arm>,
     estimator: Box<dyn NeedleEstimator>,
 ) -> RobotPrimitives {
     RobotPrimitives::new(Rig {
@@ -283,17 +283,7 @@ fn a_motion_that_never_finishes_stops_the_step_as_an_arm_fault() {
     let right = Arc::new(StuckArm(DummyArm::new("PSM1")));
     let left = Arc::new(DummyArm::new("PSM2"));
     let estimator = Box::new(Fixed(at(0.0, 0.0, -0.1)));
-    let mut p = RobotPrimitives::new(Rig {
-        right: right.clone(),
-        left,
-        right_jaw: Arc::new(DummyJaw::new("PSM1/jaw")),
-        left_jaw: Arc::new(DummyJaw::new("PSM2/jaw")),
-        estimator,
-        observer: None,
-        needle: Needle::default(),
-        layout: layout(),
-        rng: rand_chacha::ChaCha8Rng::seed_from_u64(1),
-    });
+    let mut p = rig(right.clone(), left, estimator);
     match run(&mut p, StepKind::default_for("insert").expect("insert")) {
         StepOutcome::Failed(f) => match f.kind {
             FailureKind::ArmFault { message } => {
