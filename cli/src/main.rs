@@ -2,6 +2,7 @@
 #![allow(clippy::print_stdout)] // a command-line tool prints its results
 
 mod mock;
+mod perceive;
 mod show;
 
 use anyhow::Context;
@@ -14,9 +15,9 @@ use stitch_engine::{
     ExploreOptions, Loaded, OutcomeSchedule, PlanErrors, PlanLoader, Report, RunOutcome, Runner,
     ScriptLimits, ScriptedSupervisor, explore, mermaid, validate,
 };
-use stitch_primitives::{OutcomeModel, ScriptedPrimitives, mock_primitives};
+use stitch_primitives::{MockPerception, OutcomeModel, ScriptedPrimitives, mock_primitives_with};
 use stitch_robot::{SimClock, Wound, WoundSpec};
-use stitch_sim::{SceneConfig, SensingConfig};
+use stitch_sim::{CameraConfig, SceneConfig, SensingConfig};
 
 /// Exit codes, documented in `--help` and `docs/cli.md`.
 mod exit {
@@ -87,7 +88,8 @@ enum Command {
         /// Which robot executes the plan.
         #[arg(long, value_enum, default_value_t = RobotKind::Mock)]
         robot: RobotKind,
-        /// How the mock estimates the needle pose: its noise model, or the truth.
+        /// How the mock estimates the needle pose: its noise model, the truth, or the stereo
+        /// pipeline on rendered pairs.
         #[arg(long, value_enum, default_value_t = PerceptionKind::Model)]
         perception: PerceptionKind,
         /// The mock's scene, models and faults (TOML; see docs/mock-dvrk.md). Without it,
@@ -112,6 +114,17 @@ enum Command {
         #[command(flatten)]
         wound: WoundArgs,
     },
+    /// The stereo needle pipeline on a pair of images: the pose, the disparity, or a
+    /// rendered pair to try them on.
+    Perceive {
+        #[command(subcommand)]
+        command: perceive::PerceiveCommand,
+    },
+    /// Benchmarks: `stitch bench perception`.
+    Bench {
+        #[command(subcommand)]
+        command: perceive::BenchCommand,
+    },
 }
 
 /// The mock dVRK's configuration file.
@@ -120,6 +133,7 @@ enum Command {
 struct MockConfig {
     scene: SceneConfig,
     sensing: SensingConfig,
+    camera: CameraConfig,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -128,6 +142,8 @@ enum PerceptionKind {
     Model,
     /// The true needle pose, never dropping out.
     Perfect,
+    /// The stereo pipeline on pairs rendered from the mock's scene (see docs/perception.md).
+    Pipeline,
 }
 
 #[derive(Debug, clap::Args)]
@@ -178,6 +194,8 @@ fn main() -> ExitCode {
 
 fn run(cli: Cli) -> anyhow::Result<u8> {
     match cli.command {
+        Command::Perceive { command } => perceive::perceive(command),
+        Command::Bench { command } => perceive::bench(command),
         Command::Check {
             plan,
             explore: false,
@@ -290,11 +308,12 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
             let report = match robot {
                 RobotKind::Scripted => run_scripted(&loaded, seed, outcomes.as_deref())?,
                 RobotKind::Mock => {
-                    let sensing = match perception {
-                        PerceptionKind::Model => mock.sensing,
-                        PerceptionKind::Perfect => SensingConfig::perfect(),
+                    let perception = match perception {
+                        PerceptionKind::Model => MockPerception::Model(mock.sensing),
+                        PerceptionKind::Perfect => MockPerception::Model(SensingConfig::perfect()),
+                        PerceptionKind::Pipeline => MockPerception::Pipeline(Box::new(mock.camera)),
                     };
-                    run_mock(&loaded, &mock.scene, sensing, seed)?
+                    run_mock(&loaded, &mock.scene, perception, seed)?
                 }
             };
             if let Some(path) = journal {
@@ -386,11 +405,11 @@ fn evaluate(path: &Path, spec: &WoundSpec) -> anyhow::Result<(Option<Loaded>, Op
 fn run_mock(
     loaded: &Loaded,
     scene: &SceneConfig,
-    sensing: SensingConfig,
+    perception: MockPerception,
     seed: u64,
 ) -> anyhow::Result<Report> {
     let clock = SimClock::new();
-    let (mut primitives, world) = mock_primitives(scene, sensing, seed, clock.clone())
+    let (mut primitives, world) = mock_primitives_with(scene, perception, seed, clock.clone())
         .context("invalid mock configuration")?;
     let plan = Arc::new(loaded.plan.clone());
     let mut supervisor = mock::MockSupervisor::new(world, Arc::clone(&plan));

@@ -1,5 +1,15 @@
 #![doc = include_str!("../README.md")]
 
+pub mod disparity;
+pub mod evaluate;
+pub mod fit;
+pub mod pipeline;
+pub mod segment;
+
+pub use disparity::{DisparityMap, MaskRowMatcher, SemiGlobalMatcher, StereoMatcher};
+pub use pipeline::{NeedlePipeline, PipelineEstimator, PipelineOutput, PipelineParams, PoseError};
+pub use segment::{ColorSegmenter, Masks, Rect, Segmenter};
+
 use serde::{Deserialize, Serialize};
 use std::time::Duration;
 use stitch_robot::{Needle, Point, Pose, Vector};
@@ -43,6 +53,38 @@ pub enum PerceptionError {
     Uncertain {
         /// The fit's confidence, 0 to 1.
         confidence: f64,
+    },
+    /// No needle pixels in a view.
+    #[error("no needle pixels in the {view} image")]
+    NoMask {
+        /// Which view.
+        view: String,
+    },
+    /// Too few 3D points on the needle.
+    #[error("only {found} needle points with a disparity ({needed} needed)")]
+    TooFewPoints {
+        /// Points found.
+        found: usize,
+        /// Points needed.
+        needed: usize,
+    },
+    /// The points do not fit the needle's shape.
+    #[error("bad fit: {why}")]
+    BadFit {
+        /// What went wrong.
+        why: String,
+    },
+    /// Tip and swage cannot be told apart.
+    #[error("cannot tell the tip from the swage: {why}")]
+    AmbiguousEndpoints {
+        /// The evidence.
+        why: String,
+    },
+    /// The pipeline's configuration or input cannot be used.
+    #[error("perception configuration: {message}")]
+    Config {
+        /// What is wrong.
+        message: String,
     },
     /// The camera failed.
     #[error("camera: {message}")]

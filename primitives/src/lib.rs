@@ -6,7 +6,10 @@ mod params;
 mod robot;
 mod scripted;
 
-pub use mock::{MockObserver, mock_layout, mock_primitives};
+pub use mock::{
+    MockObserver, MockPerception, PIPELINE_FRAME_TIME_S, mock_layout, mock_primitives,
+    mock_primitives_with,
+};
 pub use outcome::{Failure, FailureKind, Measurements, StepOutcome};
 pub use params::*;
 pub use robot::{

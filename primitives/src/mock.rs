@@ -3,9 +3,13 @@
 
 use crate::{FailureKind, Layout, Observer, PassObservation, Rig, RobotPrimitives};
 use std::sync::Arc;
-use stitch_perception::ModelEstimator;
+use std::time::Duration;
+use stitch_perception::{ModelEstimator, NeedleEstimator, NeedlePipeline, PipelineEstimator};
 use stitch_robot::{Point, SimClock, WoundPoint};
-use stitch_sim::{MockDvrk, SceneConfig, SensingConfig, Side, SimError, Streams, Subsystem};
+use stitch_sim::{
+    CameraConfig, MockCamera, MockDvrk, SceneConfig, SensingConfig, Side, SimError, StereoRenderer,
+    Streams, Subsystem,
+};
 
 /// The mock's ground truth as an [`Observer`].
 #[derive(Debug)]
@@ -80,21 +84,73 @@ pub fn mock_layout(scene: &SceneConfig, sensing: &SensingConfig) -> Layout {
     }
 }
 
-/// The mock dVRK and the primitives over it, everything seeded by `seed`.
+/// How the primitives on the mock see the needle.
+#[derive(Clone, Debug, PartialEq)]
+pub enum MockPerception {
+    /// The mock's noise model: the truth plus noise and dropouts (fast; `--perception model`).
+    Model(SensingConfig),
+    /// The stereo pipeline on pairs the mock's camera renders (`--perception pipeline`).
+    Pipeline(Box<CameraConfig>),
+}
+
+/// Simulated time one rendered frame costs the pipeline in the loop: a 30 Hz camera's frame
+/// period (the pipeline itself runs in under 2 ms; `stitch bench perception`), s.
+pub const PIPELINE_FRAME_TIME_S: f64 = 1.0 / 30.0;
+
+/// The mock dVRK and the primitives over it, everything seeded by `seed`, the needle seen
+/// through the mock's noise model.
 pub fn mock_primitives(
     scene: &SceneConfig,
     sensing: SensingConfig,
     seed: u64,
     clock: SimClock,
 ) -> Result<(RobotPrimitives, MockDvrk), SimError> {
+    mock_primitives_with(scene, MockPerception::Model(sensing), seed, clock)
+}
+
+/// The mock dVRK and the primitives over it, everything seeded by `seed`, with the given
+/// perception.
+pub fn mock_primitives_with(
+    scene: &SceneConfig,
+    perception: MockPerception,
+    seed: u64,
+    clock: SimClock,
+) -> Result<(RobotPrimitives, MockDvrk), SimError> {
     let streams = Streams::new(seed);
     let world = MockDvrk::new(scene, streams, clock)?;
+    let (estimator, corner): (Box<dyn NeedleEstimator>, SensingConfig) = match perception {
+        MockPerception::Model(sensing) => (
+            Box::new(ModelEstimator::new(world.clone(), sensing, streams)?),
+            sensing,
+        ),
+        MockPerception::Pipeline(camera) => {
+            let renderer = StereoRenderer::new(*camera, world.phantom_view())?;
+            let calibration = renderer.calibration().clone();
+            let camera = MockCamera::new(
+                world.clone(),
+                renderer,
+                streams,
+                Duration::from_secs_f64(PIPELINE_FRAME_TIME_S),
+            );
+            let pipeline = NeedlePipeline::classical(calibration, scene.needle).map_err(|e| {
+                SimError::Config {
+                    what: "camera".into(),
+                    why: e.to_string(),
+                }
+            })?;
+            (
+                Box::new(PipelineEstimator::new(camera, pipeline, seed)),
+                SensingConfig::default(),
+            )
+        }
+    };
+    let sensing = corner;
     let rig = Rig {
         right: Arc::new(world.arm(Side::Right)),
         left: Arc::new(world.arm(Side::Left)),
         right_jaw: Arc::new(world.jaw(Side::Right)),
         left_jaw: Arc::new(world.jaw(Side::Left)),
-        estimator: Box::new(ModelEstimator::new(world.clone(), sensing, streams)?),
+        estimator,
         observer: Some(Box::new(MockObserver::new(world.clone()))),
         needle: scene.needle,
         layout: mock_layout(scene, &sensing),

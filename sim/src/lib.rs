@@ -2,6 +2,7 @@
 
 mod faults;
 mod phantom;
+mod render;
 mod sensing;
 mod streams;
 mod thread;
@@ -10,6 +11,10 @@ mod world;
 pub use faults::{FaultConfig, FaultKind, Faults, MAX_JOINT_OFFSET, ScheduledFault};
 pub use phantom::{
     Breach, HOLE_TOLERANCE_M, Hole, MIN_PROTRUSION_M, PassScore, Phantom, PhantomGeometry,
+};
+pub use render::{
+    CameraConfig, FrameTruth, Label, MockCamera, PhantomView, RenderedPair, SWAGE_LENGTH_M,
+    SceneView, StereoRenderer, TIP_TAPER_M, ToolView,
 };
 pub use sensing::{NoiseSpec, SensingConfig, SensingFailure};
 pub use streams::{Streams, Subsystem};

@@ -429,6 +429,66 @@ impl MockDvrk {
         }
     }
 
+    /// What the camera sees now: the needle (unless it fell out of view), the free thread
+    /// and both tools, from the truth.
+    pub fn scene_view(&self) -> crate::SceneView {
+        let s = self.lock();
+        crate::SceneView {
+            needle: (!s.needle.dropped).then_some((s.needle_model, s.needle.pose)),
+            thread: s.thread.polyline.clone(),
+            tools: (0..2)
+                .map(|i| crate::ToolView {
+                    pose: s.psms[i].setpoint,
+                    jaw_rad: s.psms[i].jaw_rad,
+                })
+                .collect(),
+        }
+    }
+
+    /// The static phantom as the camera draws it.
+    pub fn phantom_view(&self) -> crate::PhantomView {
+        let s = self.lock();
+        let points = &s.phantom.wound.points;
+        let first = &points[0];
+        let last = &points[points.len() - 1];
+        let mid =
+            |wp: &stitch_robot::WoundPoint| Point::from((wp.entry.coords + wp.exit.coords) / 2.0);
+        let along = mid(last) - mid(first);
+        let length = along.norm();
+        let dir = if length > 1e-9 {
+            along / length
+        } else {
+            Vector::y()
+        };
+        let surface_z = first.entry.z + s.phantom.geometry.top_above_hole_m;
+        let mut start = mid(first);
+        start.z = surface_z;
+        crate::PhantomView {
+            surface_z,
+            hole_z: first.entry.z,
+            floor_z: first.entry.z - s.phantom.geometry.bottom_below_hole_m,
+            wound_start: start,
+            wound_dir: dir,
+            wound_length_m: length,
+            half_bite_m: (first.exit - first.entry).norm() / 2.0,
+            spacing_m: if points.len() > 1 {
+                length / (points.len() - 1) as f64
+            } else {
+                0.0
+            },
+        }
+    }
+
+    /// The hand-eye error injected as a fault (identity without one).
+    pub fn hand_eye_fault(&self) -> Pose {
+        self.lock().faults.hand_eye()
+    }
+
+    /// Whether an injected perception dropout fires now (draws from the fault stream).
+    pub fn perception_dropout_fires(&self) -> bool {
+        self.lock().faults.fires(FaultKind::PerceptionDropout)
+    }
+
     /// The needle's true state (hidden from the primitives; for scoring and perception).
     pub fn needle_truth(&self) -> NeedleTruth {
         self.lock().needle.clone()

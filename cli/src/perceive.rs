@@ -1,0 +1,597 @@
+//! `stitch perceive …` and `stitch bench perception`: the stereo pipeline on a lab's own
+//! images, on rendered pairs, and its latency and accuracy tables.
+
+use anyhow::Context;
+use clap::{Subcommand, ValueEnum};
+use serde::{Deserialize, Serialize};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+use stitch_perception::evaluate::{self, Accuracy, FrameResult, percentile};
+use stitch_perception::{
+    MaskRowMatcher, NeedlePipeline, PerceptionError, Rect, SemiGlobalMatcher, StereoMatcher,
+};
+use stitch_robot::nalgebra::{Matrix3, Rotation3, Translation3, UnitQuaternion};
+use stitch_robot::{Needle, Pose, RgbImage, StereoCalibration};
+use stitch_sim::{CameraConfig, MockDvrk, SceneConfig, StereoRenderer, Streams};
+
+/// Exit code of `perceive needle` when the pipeline gives a typed failure instead of a pose.
+pub const NO_ESTIMATE: u8 = 6;
+
+#[derive(Debug, Subcommand)]
+pub enum PerceiveCommand {
+    /// Estimate the needle pose from a rectified stereo pair; print it as JSON, or the
+    /// typed failure (exit code 6).
+    Needle {
+        /// Left image (PNG, 8-bit RGB or grey).
+        left: PathBuf,
+        /// Right image.
+        right: PathBuf,
+        /// The stereo calibration (TOML; see docs/perception.md).
+        #[arg(long)]
+        calib: PathBuf,
+        #[command(flatten)]
+        options: PipelineOptions,
+    },
+    /// Compute the disparity over the needle's region (or --roi) and write it as PFM
+    /// (little-endian, one channel, invalid = +inf, bottom row first as PFM requires).
+    Disparity {
+        /// Left image (PNG).
+        left: PathBuf,
+        /// Right image.
+        right: PathBuf,
+        /// The stereo calibration (TOML).
+        #[arg(long)]
+        calib: PathBuf,
+        /// Where to write the disparity map; it covers the whole left image.
+        #[arg(long)]
+        out: PathBuf,
+        /// Match over this left-image region instead of the needle's: x0,y0,x1,y1 pixels.
+        #[arg(long, value_parser = parse_rect)]
+        roi: Option<Rect>,
+        #[command(flatten)]
+        options: PipelineOptions,
+    },
+    /// Render a pair of the evaluation set (or of the mock's start) to PNG, with its
+    /// calibration (TOML) and truth (JSON): what the other commands read.
+    Render {
+        /// Directory to write left.png, right.png, calib.toml and truth.json into.
+        #[arg(long)]
+        out: PathBuf,
+        /// Seed of the evaluation set and of the image noise.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Which frame of the evaluation set; without it, the mock's start.
+        #[arg(long)]
+        sample: Option<usize>,
+    },
+}
+
+#[derive(Debug, Subcommand)]
+pub enum BenchCommand {
+    /// Latency per stage and end to end, and accuracy on a fixed rendered set.
+    Perception {
+        /// Frames in the rendered set.
+        #[arg(long, default_value_t = 500)]
+        frames: usize,
+        /// Seed of the set.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Print JSON instead of tables.
+        #[arg(long)]
+        json: bool,
+        /// Matchers to measure (the default pipeline uses mask-row).
+        #[arg(long, value_enum, value_delimiter = ',', default_values_t = [MatcherKind::MaskRow, MatcherKind::Sgm])]
+        matchers: Vec<MatcherKind>,
+    },
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum MatcherKind {
+    /// Row-run matching of the needle masks (the default).
+    MaskRow,
+    /// Census semi-global matching.
+    Sgm,
+}
+
+#[derive(Debug, clap::Args)]
+pub struct PipelineOptions {
+    /// The disparity matcher.
+    #[arg(long, value_enum, default_value_t = MatcherKind::MaskRow)]
+    matcher: MatcherKind,
+    /// Needle radius, mm.
+    #[arg(long, default_value_t = 12.0)]
+    needle_radius_mm: f64,
+    /// Seed of RANSAC's draws.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+}
+
+fn parse_rect(s: &str) -> Result<Rect, String> {
+    let v: Vec<u32> = s
+        .split(',')
+        .map(|p| p.trim().parse::<u32>())
+        .collect::<Result<_, _>>()
+        .map_err(|e| format!("{s:?}: {e}; expected x0,y0,x1,y1 in pixels"))?;
+    match v[..] {
+        [x0, y0, x1, y1] if x1 > x0 && y1 > y0 => Ok(Rect { x0, y0, x1, y1 }),
+        _ => Err(format!(
+            "{s:?}: expected x0,y0,x1,y1 with x1 > x0 and y1 > y0"
+        )),
+    }
+}
+
+fn matcher(kind: MatcherKind) -> Box<dyn StereoMatcher> {
+    match kind {
+        MatcherKind::MaskRow => Box::new(MaskRowMatcher::default()),
+        MatcherKind::Sgm => Box::new(SemiGlobalMatcher::default()),
+    }
+}
+
+/// The calibration file: a rectified pair's shared intrinsics, its baseline, image size, and
+/// the left camera's pose in the robot frame (hand-eye).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CalibrationFile {
+    /// Focal length along x, pixels.
+    pub fx: f64,
+    /// Focal length along y, pixels.
+    pub fy: f64,
+    /// Principal point, pixels.
+    pub cx: f64,
+    /// Principal point, pixels.
+    pub cy: f64,
+    /// Distance between the cameras' centres, m.
+    pub baseline_m: f64,
+    /// Image width, pixels.
+    pub width: u32,
+    /// Image height, pixels.
+    pub height: u32,
+    /// The left camera frame in the robot frame.
+    pub camera_to_robot: TransformFile,
+}
+
+/// A rigid transform: translation (m) and rotation matrix (rows).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TransformFile {
+    /// Translation, m.
+    pub translation_m: [f64; 3],
+    /// Rotation matrix, row by row.
+    pub rotation: [[f64; 3]; 3],
+}
+
+impl CalibrationFile {
+    pub fn from_calibration(c: &StereoCalibration) -> Self {
+        let m = c.camera_to_robot.rotation.to_rotation_matrix();
+        let m = m.matrix();
+        let t = c.camera_to_robot.translation.vector;
+        Self {
+            fx: c.fx,
+            fy: c.fy,
+            cx: c.cx,
+            cy: c.cy,
+            baseline_m: c.baseline_m,
+            width: c.width,
+            height: c.height,
+            camera_to_robot: TransformFile {
+                translation_m: [t.x, t.y, t.z],
+                rotation: [0, 1, 2].map(|r| [m[(r, 0)], m[(r, 1)], m[(r, 2)]]),
+            },
+        }
+    }
+
+    pub fn to_calibration(&self) -> anyhow::Result<StereoCalibration> {
+        let r = &self.camera_to_robot.rotation;
+        let m = Matrix3::from_fn(|i, j| r[i][j]);
+        let err = (m.transpose() * m - Matrix3::identity()).norm();
+        if !err.is_finite() || err > 1e-3 || (m.determinant() - 1.0).abs() > 1e-3 {
+            anyhow::bail!(
+                "camera_to_robot.rotation is not a rotation matrix (‖RᵀR − I‖ = {err:.2e}, det = {:.4})",
+                m.determinant()
+            );
+        }
+        let t = self.camera_to_robot.translation_m;
+        let c = StereoCalibration {
+            fx: self.fx,
+            fy: self.fy,
+            cx: self.cx,
+            cy: self.cy,
+            baseline_m: self.baseline_m,
+            width: self.width,
+            height: self.height,
+            camera_to_robot: Pose::from_parts(
+                Translation3::new(t[0], t[1], t[2]),
+                UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(m)),
+            ),
+        };
+        c.validate()?;
+        Ok(c)
+    }
+}
+
+fn read_calibration(path: &Path) -> anyhow::Result<StereoCalibration> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let file: CalibrationFile =
+        toml::from_str(&text).with_context(|| format!("invalid calibration {}", path.display()))?;
+    file.to_calibration()
+        .with_context(|| format!("invalid calibration {}", path.display()))
+}
+
+fn read_png(path: &Path) -> anyhow::Result<RgbImage> {
+    let img = image::open(path)
+        .with_context(|| format!("cannot read the image {}", path.display()))?
+        .into_rgb8();
+    Ok(RgbImage {
+        width: img.width(),
+        height: img.height(),
+        data: img.into_raw(),
+    })
+}
+
+fn write_png(path: &Path, img: &RgbImage) -> anyhow::Result<()> {
+    let buf = image::RgbImage::from_raw(img.width, img.height, img.data.clone())
+        .context("image buffer of the wrong size")?;
+    buf.save_with_format(path, image::ImageFormat::Png)
+        .with_context(|| format!("cannot write {}", path.display()))
+}
+
+/// PFM (Portable Float Map), one channel: a three-line header and little-endian f32 rows,
+/// bottom row first. Written by hand: it is those three lines and a loop.
+fn write_pfm(path: &Path, width: u32, height: u32, data: &[f32]) -> anyhow::Result<()> {
+    let mut out = Vec::with_capacity(data.len() * 4 + 32);
+    write!(out, "Pf\n{width} {height}\n-1.0\n")?;
+    for y in (0..height as usize).rev() {
+        for v in &data[y * width as usize..(y + 1) * width as usize] {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+    std::fs::write(path, out).with_context(|| format!("cannot write {}", path.display()))
+}
+
+fn pipeline(
+    calibration: StereoCalibration,
+    options: &PipelineOptions,
+) -> anyhow::Result<NeedlePipeline> {
+    let needle = Needle::new(options.needle_radius_mm * 1e-3)?;
+    let mut p = NeedlePipeline::classical(calibration, needle)?;
+    p.matcher = matcher(options.matcher);
+    Ok(p)
+}
+
+/// The estimate as printed.
+#[derive(Debug, Serialize)]
+struct PoseJson {
+    center_m: [f64; 3],
+    normal: [f64; 3],
+    tip_m: [f64; 3],
+    swage_m: [f64; 3],
+    /// Needle frame in the robot frame: translation and quaternion (x, y, z, w).
+    translation_m: [f64; 3],
+    rotation_xyzw: [f64; 4],
+    confidence: f64,
+    diagnostics: stitch_perception::pipeline::Diagnostics,
+}
+
+pub fn perceive(command: PerceiveCommand) -> anyhow::Result<u8> {
+    match command {
+        PerceiveCommand::Needle {
+            left,
+            right,
+            calib,
+            options,
+        } => {
+            let c = read_calibration(&calib)?;
+            let (l, r) = (read_png(&left)?, read_png(&right)?);
+            let p = pipeline(c, &options)?;
+            let mut out = std::io::stdout().lock();
+            match p.estimate(&l, &r, None, options.seed) {
+                Ok(o) => {
+                    let g = p.needle.in_world(&o.pose);
+                    let t = o.pose.translation.vector;
+                    let q = o.pose.rotation.coords;
+                    let a = |p: stitch_robot::Point| [p.x, p.y, p.z];
+                    let json = PoseJson {
+                        center_m: a(g.center),
+                        normal: [g.normal.x, g.normal.y, g.normal.z],
+                        tip_m: a(g.tip),
+                        swage_m: a(g.swage),
+                        translation_m: [t.x, t.y, t.z],
+                        rotation_xyzw: [q.x, q.y, q.z, q.w],
+                        confidence: o.confidence,
+                        diagnostics: o.diagnostics,
+                    };
+                    serde_json::to_writer_pretty(&mut out, &json)?;
+                    writeln!(out)?;
+                    Ok(crate::exit::OK)
+                }
+                Err(e) => {
+                    failure_json(&mut out, &e)?;
+                    eprintln!("no estimate: {e}");
+                    Ok(NO_ESTIMATE)
+                }
+            }
+        }
+        PerceiveCommand::Disparity {
+            left,
+            right,
+            calib,
+            out,
+            roi,
+            options,
+        } => {
+            let c = read_calibration(&calib)?;
+            let (l, r) = (read_png(&left)?, read_png(&right)?);
+            let (w, h) = (c.width, c.height);
+            let p = pipeline(c, &options)?;
+            let map = match p.disparity(&l, &r, roi) {
+                Ok(m) => m,
+                Err(e) => {
+                    failure_json(&mut std::io::stdout().lock(), &e)?;
+                    eprintln!("no disparity: {e}");
+                    return Ok(NO_ESTIMATE);
+                }
+            };
+            let mut full = vec![f32::INFINITY; (w * h) as usize];
+            for y in map.roi.y0..map.roi.y1 {
+                for x in map.roi.x0..map.roi.x1 {
+                    if let Some(d) = map.at(x, y) {
+                        full[(y * w + x) as usize] = d;
+                    }
+                }
+            }
+            write_pfm(&out, w, h, &full)?;
+            println!(
+                "wrote {} ({}×{}; {} valid disparities over {}..{} × {}..{})",
+                out.display(),
+                w,
+                h,
+                map.valid_count(),
+                map.roi.x0,
+                map.roi.x1,
+                map.roi.y0,
+                map.roi.y1
+            );
+            Ok(crate::exit::OK)
+        }
+        PerceiveCommand::Render { out, seed, sample } => {
+            std::fs::create_dir_all(&out)
+                .with_context(|| format!("cannot create {}", out.display()))?;
+            let (renderer, world) = mock_renderer(seed)?;
+            let scene_and_truth = match sample {
+                Some(k) => {
+                    let set =
+                        evaluate::dataset(k + 1, seed, Needle::default(), &world.phantom_view());
+                    let s = set.into_iter().nth(k).context("no such sample")?;
+                    (s.scene, s.truth)
+                }
+                None => (world.scene_view(), world.needle_truth().pose),
+            };
+            let mut rng = Streams::new(seed).rng(stitch_sim::Subsystem::Perception);
+            let pair = renderer.render(&scene_and_truth.0, &Pose::identity(), &mut rng);
+            write_png(&out.join("left.png"), &pair.left)?;
+            write_png(&out.join("right.png"), &pair.right)?;
+            let calib = CalibrationFile::from_calibration(renderer.calibration());
+            std::fs::write(out.join("calib.toml"), toml::to_string(&calib)?)
+                .with_context(|| format!("cannot write into {}", out.display()))?;
+            let needle = Needle::default();
+            let g = needle.in_world(&scene_and_truth.1);
+            let a = |p: stitch_robot::Point| [p.x, p.y, p.z];
+            let truth = serde_json::json!({
+                "center_m": a(g.center),
+                "normal": [g.normal.x, g.normal.y, g.normal.z],
+                "tip_m": a(g.tip),
+                "swage_m": a(g.swage),
+            });
+            std::fs::write(
+                out.join("truth.json"),
+                serde_json::to_string_pretty(&truth)? + "\n",
+            )?;
+            println!(
+                "wrote left.png, right.png, calib.toml and truth.json into {}",
+                out.display()
+            );
+            Ok(crate::exit::OK)
+        }
+    }
+}
+
+fn failure_json(out: &mut impl Write, e: &PerceptionError) -> anyhow::Result<()> {
+    let json = serde_json::json!({
+        "failure": evaluate::failure_kind(e),
+        "message": e.to_string(),
+    });
+    serde_json::to_writer_pretty(&mut *out, &json)?;
+    writeln!(out)?;
+    Ok(())
+}
+
+/// The mock's default renderer and a world at its start.
+fn mock_renderer(seed: u64) -> anyhow::Result<(StereoRenderer, MockDvrk)> {
+    let world = MockDvrk::new(
+        &SceneConfig::default(),
+        Streams::new(seed),
+        stitch_robot::SimClock::new(),
+    )?;
+    let renderer = StereoRenderer::new(CameraConfig::default(), world.phantom_view())?;
+    Ok((renderer, world))
+}
+
+#[derive(Debug, Serialize)]
+struct Latency {
+    median_ms: f64,
+    p95_ms: f64,
+}
+
+fn latency(mut v: Vec<f64>) -> Latency {
+    v.sort_by(f64::total_cmp);
+    Latency {
+        median_ms: percentile(&v, 0.5) * 1e3,
+        p95_ms: percentile(&v, 0.95) * 1e3,
+    }
+}
+
+#[derive(Debug, Serialize)]
+struct BenchRow {
+    matcher: MatcherKind,
+    threads: &'static str,
+    render: Latency,
+    segment: Latency,
+    disparity: Latency,
+    cloud: Latency,
+    fit: Latency,
+    total: Latency,
+    accuracy: Accuracy,
+    by_jaw: Vec<(String, Accuracy)>,
+    thread_over: Accuracy,
+}
+
+pub fn bench(command: BenchCommand) -> anyhow::Result<u8> {
+    let BenchCommand::Perception {
+        frames,
+        seed,
+        json,
+        matchers,
+    } = command;
+    if frames == 0 {
+        anyhow::bail!("--frames must be at least 1");
+    }
+    let (renderer, world) = mock_renderer(seed)?;
+    let samples = evaluate::dataset(frames, seed, Needle::default(), &world.phantom_view());
+    let mut rows = Vec::new();
+    let started = Instant::now();
+    for &m in &matchers {
+        for parallel in [false, true] {
+            let mut p =
+                NeedlePipeline::classical(renderer.calibration().clone(), Needle::default())?;
+            p.matcher = matcher(m);
+            p.parallel = parallel;
+            let results = evaluate::run(&p, &renderer, &samples, seed);
+            rows.push(row(m, parallel, &results));
+            eprintln!(
+                "{} {}: {} frames in {:.1} s",
+                m_name(m),
+                if parallel { "all cores" } else { "1 thread" },
+                frames,
+                started.elapsed().as_secs_f64()
+            );
+        }
+    }
+    let mut out = std::io::stdout().lock();
+    if json {
+        serde_json::to_writer_pretty(&mut out, &rows)?;
+        writeln!(out)?;
+    } else {
+        write!(out, "{}", tables(&rows, frames, seed))?;
+    }
+    Ok(crate::exit::OK)
+}
+
+fn m_name(m: MatcherKind) -> &'static str {
+    match m {
+        MatcherKind::MaskRow => "mask-row",
+        MatcherKind::Sgm => "sgm",
+    }
+}
+
+fn row(m: MatcherKind, parallel: bool, results: &[FrameResult]) -> BenchRow {
+    let secs = |f: &dyn Fn(&FrameResult) -> Duration| -> Vec<f64> {
+        results
+            .iter()
+            .filter(|r| r.error.is_some())
+            .map(|r| f(r).as_secs_f64())
+            .collect()
+    };
+    let by_jaw = ["right", "left"]
+        .iter()
+        .map(|j| {
+            let sub: Vec<FrameResult> = results.iter().filter(|r| r.jaw == *j).cloned().collect();
+            (j.to_string(), evaluate::accuracy(&sub))
+        })
+        .collect();
+    let over: Vec<FrameResult> = results.iter().filter(|r| r.thread_over).cloned().collect();
+    BenchRow {
+        matcher: m,
+        threads: if parallel { "all cores" } else { "1 thread" },
+        render: latency(results.iter().map(|r| r.render.as_secs_f64()).collect()),
+        segment: latency(secs(&|r| r.times.segment)),
+        disparity: latency(secs(&|r| r.times.disparity)),
+        cloud: latency(secs(&|r| r.times.cloud)),
+        fit: latency(secs(&|r| r.times.fit)),
+        total: latency(results.iter().map(|r| r.total.as_secs_f64()).collect()),
+        accuracy: evaluate::accuracy(results),
+        by_jaw,
+        thread_over: evaluate::accuracy(&over),
+    }
+}
+
+fn tables(rows: &[BenchRow], frames: usize, seed: u64) -> String {
+    let mut s = format!(
+        "Stereo needle pipeline on {frames} rendered 1280×960 pairs (seed {seed}), {} cores\n\nLatency per stereo pair, ms (median / p95; stage times over frames with an estimate)\n\n",
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    );
+    s += "| matcher | threads | render | segment | disparity | cloud | fit | end to end |\n|---|---|---|---|---|---|---|---|\n";
+    let l = |x: &Latency| format!("{:.2} / {:.2}", x.median_ms, x.p95_ms);
+    for r in rows {
+        s += &format!(
+            "| {} | {} | {} | {} | {} | {} | {} | {} |\n",
+            m_name(r.matcher),
+            r.threads,
+            l(&r.render),
+            l(&r.segment),
+            l(&r.disparity),
+            l(&r.cloud),
+            l(&r.fit),
+            l(&r.total)
+        );
+    }
+    s += "\nAccuracy (errors median / p95 over estimates; shares over all frames)\n\n";
+    s += "| matcher | frames | endpoints mm | centre mm | normal ° | ≤ 1 mm & 5° | ≤ 3 mm or typed failure | typed failures | wrong (> 3 mm) |\n|---|---|---|---|---|---|---|---|---|\n";
+    let a = |name: String, x: &Accuracy| {
+        format!(
+            "| {name} | {} | {:.2} / {:.2} | {:.2} / {:.2} | {:.2} / {:.2} | {:.1} % | {:.1} % | {:.1} % | {} |\n",
+            x.frames,
+            x.endpoint_mm[0],
+            x.endpoint_mm[1],
+            x.center_mm[0],
+            x.center_mm[1],
+            x.normal_deg[0],
+            x.normal_deg[1],
+            100.0 * x.within_1mm_5deg,
+            100.0 * x.within_3mm_or_failure,
+            100.0 * x.failures,
+            x.wrong
+        )
+    };
+    for r in rows.iter().filter(|r| r.threads == "1 thread") {
+        s += &a(m_name(r.matcher).to_string(), &r.accuracy);
+        for (j, acc) in &r.by_jaw {
+            s += &a(format!("{} ({j} jaw)", m_name(r.matcher)), acc);
+        }
+        s += &a(
+            format!("{} (thread over the needle)", m_name(r.matcher)),
+            &r.thread_over,
+        );
+    }
+    s += "\nTyped failures by kind\n\n";
+    for r in rows.iter().filter(|r| r.threads == "1 thread") {
+        let kinds: Vec<String> = r
+            .accuracy
+            .failure_kinds
+            .iter()
+            .map(|(k, n)| format!("{k} {n}"))
+            .collect();
+        s += &format!(
+            "- {}: {}\n",
+            m_name(r.matcher),
+            if kinds.is_empty() {
+                "none".into()
+            } else {
+                kinds.join(", ")
+            }
+        );
+    }
+    s
+}

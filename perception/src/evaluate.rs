@@ -1,0 +1,256 @@
+//! The fixed rendered evaluation set and the accuracy and latency tables of
+//! `stitch bench perception` (and the pipeline's tests).
+//!
+//! The set: needle poses spread over the workspace, held in the right jaw near the swage or
+//! in the left jaw near the tip (as after a handover), most with the jaw from above (normal
+//! within 40° of straight down), some presented towards the camera (as at the correction
+//! point); the thread runs from the swage to the wound, and in a share of frames loops over
+//! the needle. Everything from one seed.
+
+use crate::PerceptionError;
+use crate::pipeline::{NeedlePipeline, PoseError};
+use nalgebra::{Translation3, Unit, UnitQuaternion};
+use rand::Rng;
+use rand_chacha::ChaCha8Rng;
+use rand_chacha::rand_core::SeedableRng;
+use serde::Serialize;
+use std::time::{Duration, Instant};
+use stitch_robot::{Needle, Point, Pose, Vector};
+use stitch_sim::{PhantomView, SceneView, StereoRenderer, ToolView, grasp_in_needle_frame};
+
+/// One evaluation frame's scene.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Sample {
+    /// What the camera sees.
+    pub scene: SceneView,
+    /// The true needle pose.
+    pub truth: Pose,
+    /// Which jaw holds it: "right" or "left".
+    pub jaw: &'static str,
+    /// Whether the thread was laid across the needle.
+    pub thread_over: bool,
+}
+
+/// The workspace the set spreads over, robot frame, m (the mock's default workspace around
+/// the wound and both homes).
+pub const WORKSPACE: [[f64; 2]; 3] = [[-0.045, 0.045], [-0.03, 0.05], [-0.105, -0.075]];
+
+/// `n` samples from `seed`, for the default phantom `phantom`.
+pub fn dataset(n: usize, seed: u64, needle: Needle, phantom: &PhantomView) -> Vec<Sample> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let to_camera = Vector::new(0.0, 0.125, 0.12).normalize();
+    (0..n)
+        .map(|_| {
+            let center = Point::new(
+                rng.random_range(WORKSPACE[0][0]..WORKSPACE[0][1]),
+                rng.random_range(WORKSPACE[1][0]..WORKSPACE[1][1]),
+                rng.random_range(WORKSPACE[2][0]..WORKSPACE[2][1]),
+            );
+            let presented = rng.random_bool(0.3);
+            // Presented: the plane faces the camera, the jaw holding it from behind (a
+            // circle looks the same from both sides; the tool's shaft runs along the normal).
+            let (axis, cone) = if presented {
+                (-to_camera, 30f64.to_radians())
+            } else {
+                (-Vector::z(), 40f64.to_radians())
+            };
+            let normal = random_in_cone(&mut rng, &axis, cone);
+            let spin = rng.random_range(0.0..std::f64::consts::TAU);
+            let align =
+                UnitQuaternion::rotation_between(&Vector::z(), &normal).unwrap_or_else(|| {
+                    UnitQuaternion::from_axis_angle(&Vector::x_axis(), std::f64::consts::PI)
+                });
+            let rotation = align * UnitQuaternion::from_axis_angle(&Vector::z_axis(), spin);
+            let truth = Pose::from_parts(Translation3::from(center.coords), rotation);
+            let right = rng.random_bool(0.5);
+            let angle = if right {
+                rng.random_range(140f64..160.0).to_radians()
+            } else {
+                rng.random_range(15f64..35.0).to_radians()
+            };
+            let tool = truth * grasp_in_needle_frame(&needle, angle);
+            let swage = truth * needle.swage();
+            let anchor = phantom.wound_start;
+            let thread_over = rng.random_bool(0.3);
+            let mid = if thread_over {
+                // Loop over the needle: through a point over its arc, nearer the camera.
+                let a = rng.random_range(0.3..2.8);
+                truth * needle.point_at(a) + to_camera * 0.004
+            } else {
+                let m = Point::from((swage.coords + anchor.coords) / 2.0);
+                Point::new(m.x, m.y, phantom.surface_z.max(m.z - 0.02))
+            };
+            Sample {
+                scene: SceneView {
+                    needle: Some((needle, truth)),
+                    thread: vec![anchor, mid, swage],
+                    tools: vec![ToolView {
+                        pose: tool,
+                        jaw_rad: 0.0,
+                    }],
+                },
+                truth,
+                jaw: if right { "right" } else { "left" },
+                thread_over,
+            }
+        })
+        .collect()
+}
+
+fn random_in_cone(rng: &mut ChaCha8Rng, axis: &Vector, cone: f64) -> Vector {
+    let cos_max = cone.cos();
+    let c = rng.random_range(cos_max..1.0);
+    let s = (1.0 - c * c).sqrt();
+    let phi = rng.random_range(0.0..std::f64::consts::TAU);
+    let local = Vector::new(s * phi.cos(), s * phi.sin(), c);
+    let q = UnitQuaternion::rotation_between(&Vector::z(), axis).unwrap_or_else(|| {
+        UnitQuaternion::from_axis_angle(&Unit::new_normalize(Vector::x()), std::f64::consts::PI)
+    });
+    q * local
+}
+
+/// One frame's result.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct FrameResult {
+    /// The error, if there was an estimate.
+    pub error: Option<PoseError>,
+    /// The typed failure, if there was none.
+    pub failure: Option<String>,
+    /// The pipeline's stage times.
+    pub times: crate::pipeline::StageTimes,
+    /// End to end, including what the stage times do not split out.
+    pub total: Duration,
+    /// Rendering the pair.
+    pub render: Duration,
+    /// Which jaw held the needle.
+    pub jaw: &'static str,
+    /// Whether the thread lay over the needle.
+    pub thread_over: bool,
+}
+
+/// Render and estimate every sample; noise from `seed`.
+pub fn run(
+    pipeline: &NeedlePipeline,
+    renderer: &StereoRenderer,
+    samples: &[Sample],
+    seed: u64,
+) -> Vec<FrameResult> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    samples
+        .iter()
+        .enumerate()
+        .map(|(i, s)| {
+            let t0 = Instant::now();
+            let pair = renderer.render(&s.scene, &Pose::identity(), &mut rng);
+            let t1 = Instant::now();
+            let out = pipeline.estimate(&pair.left, &pair.right, None, seed ^ i as u64);
+            let total = t1.elapsed();
+            let (error, failure, times) = match out {
+                Ok(o) => (
+                    Some(PoseError::between(&pipeline.needle, &o.pose, &s.truth)),
+                    None,
+                    o.diagnostics.times,
+                ),
+                Err(e) => (None, Some(failure_kind(&e).to_string()), Default::default()),
+            };
+            FrameResult {
+                error,
+                failure,
+                times,
+                total,
+                render: t1 - t0,
+                jaw: s.jaw,
+                thread_over: s.thread_over,
+            }
+        })
+        .collect()
+}
+
+/// A failure's kind, for tables.
+pub fn failure_kind(e: &PerceptionError) -> &'static str {
+    match e {
+        PerceptionError::NotFound => "not_found",
+        PerceptionError::Occluded { .. } => "occluded",
+        PerceptionError::Uncertain { .. } => "uncertain",
+        PerceptionError::NoMask { .. } => "no_mask",
+        PerceptionError::TooFewPoints { .. } => "too_few_points",
+        PerceptionError::BadFit { .. } => "bad_fit",
+        PerceptionError::AmbiguousEndpoints { .. } => "ambiguous_endpoints",
+        PerceptionError::Config { .. } => "config",
+        PerceptionError::Camera { .. } => "camera",
+    }
+}
+
+/// The accuracy table's numbers.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Accuracy {
+    /// Frames.
+    pub frames: usize,
+    /// Frames with an estimate.
+    pub estimates: usize,
+    /// Median and p95 endpoint error (the worse of tip and swage) over estimates, mm.
+    pub endpoint_mm: [f64; 2],
+    /// Median and p95 centre error, mm.
+    pub center_mm: [f64; 2],
+    /// Median and p95 normal error, degrees.
+    pub normal_deg: [f64; 2],
+    /// Share of all frames with endpoints within 1 mm and normal within 5°.
+    pub within_1mm_5deg: f64,
+    /// Share of all frames either within 3 mm (endpoints and centre) or a typed failure.
+    pub within_3mm_or_failure: f64,
+    /// Share of frames with a typed failure.
+    pub failures: f64,
+    /// Estimates more than 3 mm off (silent wrong poses).
+    pub wrong: usize,
+    /// Failures by kind.
+    pub failure_kinds: Vec<(String, usize)>,
+}
+
+/// Percentile `q` (0–1) of sorted values.
+pub fn percentile(sorted: &[f64], q: f64) -> f64 {
+    if sorted.is_empty() {
+        return f64::NAN;
+    }
+    let i = ((sorted.len() - 1) as f64 * q).round() as usize;
+    sorted[i.min(sorted.len() - 1)]
+}
+
+fn med_p95(mut v: Vec<f64>) -> [f64; 2] {
+    v.sort_by(f64::total_cmp);
+    [percentile(&v, 0.5), percentile(&v, 0.95)]
+}
+
+/// Summarise results.
+pub fn accuracy(results: &[FrameResult]) -> Accuracy {
+    let errs: Vec<&PoseError> = results.iter().filter_map(|r| r.error.as_ref()).collect();
+    let n = results.len().max(1) as f64;
+    let good = errs
+        .iter()
+        .filter(|e| e.endpoints_m() <= 0.001 && e.normal_rad <= 5f64.to_radians())
+        .count();
+    let ok3 = |e: &PoseError| e.endpoints_m().max(e.center_m) <= 0.003;
+    let wrong = errs.iter().filter(|e| !ok3(e)).count();
+    let failures = results.iter().filter(|r| r.failure.is_some()).count();
+    let mut kinds: Vec<(String, usize)> = Vec::new();
+    for r in results {
+        if let Some(f) = &r.failure {
+            match kinds.iter_mut().find(|(k, _)| k == f) {
+                Some(k) => k.1 += 1,
+                None => kinds.push((f.clone(), 1)),
+            }
+        }
+    }
+    kinds.sort();
+    Accuracy {
+        frames: results.len(),
+        estimates: errs.len(),
+        endpoint_mm: med_p95(errs.iter().map(|e| e.endpoints_m() * 1e3).collect()),
+        center_mm: med_p95(errs.iter().map(|e| e.center_m * 1e3).collect()),
+        normal_deg: med_p95(errs.iter().map(|e| e.normal_rad.to_degrees()).collect()),
+        within_1mm_5deg: good as f64 / n,
+        within_3mm_or_failure: (results.len() - wrong) as f64 / n,
+        failures: failures as f64 / n,
+        wrong,
+        failure_kinds: kinds,
+    }
+}

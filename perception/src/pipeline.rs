@@ -1,0 +1,651 @@
+//! The stereo needle pipeline: segmentation → disparity → point cloud → RANSAC plane →
+//! RANSAC circle (known radius) → endpoints, tip told from swage by the thread → a pose with
+//! a confidence, or a typed failure. Deterministic given its seed.
+
+use crate::disparity::{DisparityMap, MaskRowMatcher, StereoInput, StereoMatcher};
+use crate::fit::{self, Circle, RansacParams, arc_extent, plane_basis};
+use crate::segment::{ColorSegmenter, Masks, Rect, Segmenter, check_image};
+use crate::{NeedleEstimate, NeedleEstimator, PerceptionError};
+use nalgebra::{Matrix3, Rotation3, UnitQuaternion};
+use rand_chacha::ChaCha8Rng;
+use rand_chacha::rand_core::SeedableRng;
+use serde::{Deserialize, Serialize};
+use std::f64::consts::PI;
+use std::time::{Duration, Instant};
+use stitch_robot::{Needle, Point, Pose, StereoCalibration, StereoCamera, StereoFrame};
+
+/// The swage's radius as a multiple of the wire's (a crimped swage is thicker; modelling
+/// choice shared with the renderer's needle).
+const SWAGE_RADIUS_SCALE: f64 = 1.25;
+
+/// The pipeline's thresholds.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct PipelineParams {
+    /// Nearest and farthest needle depth the disparity search covers, m.
+    pub depth_range_m: [f64; 2],
+    /// Extra disparity allowed beyond the two views' regions' offsets, pixels.
+    pub disparity_margin_px: u32,
+    /// Most points kept for fitting (evenly subsampled).
+    pub max_points: usize,
+    /// Least points in the cloud, and least circle inliers.
+    pub min_points: usize,
+    /// RANSAC thresholds and iterations.
+    pub ransac: RansacParams,
+    /// Least share of the cloud on the fitted circle.
+    pub min_inlier_share: f64,
+    /// Least arc seen, rad (the needle is a half circle: π).
+    pub min_arc_rad: f64,
+    /// An arc within this of π counts as both ends seen, rad.
+    pub full_arc_tolerance_rad: f64,
+    /// Thread pixels searched for within this distance of each end, m.
+    pub swage_search_m: f64,
+    /// An end whose wire is narrower than this share of its width 3 mm along is the tip.
+    pub tip_taper_ratio: f64,
+    /// With both ends measured, the end whose width ratio is lower by this much is the tip.
+    pub taper_difference: f64,
+    /// An end whose wire is wider than this share of its width 3 mm along is the swage.
+    pub swage_taper_ratio: f64,
+    /// Least thread pixels near the swage end.
+    pub min_thread_px: usize,
+    /// The swage end must have at least this many times the other end's thread pixels.
+    pub swage_ratio: f64,
+    /// Estimates less confident than this are refused.
+    pub min_confidence: f64,
+}
+
+impl Default for PipelineParams {
+    fn default() -> Self {
+        Self {
+            depth_range_m: [0.05, 0.6],
+            disparity_margin_px: 40,
+            max_points: 1500,
+            min_points: 40,
+            ransac: RansacParams::default(),
+            min_inlier_share: 0.5,
+            min_arc_rad: 140f64.to_radians(),
+            full_arc_tolerance_rad: 12f64.to_radians(),
+            swage_search_m: 0.0025,
+            tip_taper_ratio: 0.8,
+            swage_taper_ratio: 1.08,
+            taper_difference: 0.25,
+            min_thread_px: 4,
+            swage_ratio: 2.0,
+            min_confidence: 0.5,
+        }
+    }
+}
+
+/// Time spent in each stage of one estimate (measured; never affects the result).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct StageTimes {
+    /// Locating and segmenting both views.
+    pub segment: Duration,
+    /// Disparity.
+    pub disparity: Duration,
+    /// Point cloud.
+    pub cloud: Duration,
+    /// Plane, circle, endpoints.
+    pub fit: Duration,
+}
+
+/// What one estimate found besides the pose, for diagnosis and benchmarks.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Diagnostics {
+    /// The left and right regions of interest.
+    pub rois: [Rect; 2],
+    /// Disparity search range, pixels.
+    pub disparity_range: [u32; 2],
+    /// Needle pixels, left view.
+    pub needle_px: usize,
+    /// Points in the cloud (after subsampling).
+    pub cloud_points: usize,
+    /// Plane inliers.
+    pub plane_inliers: usize,
+    /// Circle inliers.
+    pub circle_inliers: usize,
+    /// RMS distance of the circle inliers, m.
+    pub rms_m: f64,
+    /// Arc seen, rad.
+    pub arc_rad: f64,
+    /// Thread pixels near the arc's two observed ends (counter-clockwise first).
+    pub thread_px: [usize; 2],
+    /// The wire's width near each observed end against 3 mm along the arc.
+    pub taper: [Option<f64>; 2],
+    /// Stage times.
+    pub times: StageTimes,
+}
+
+/// The stereo needle pipeline.
+#[derive(Debug)]
+pub struct NeedlePipeline {
+    /// Thresholds.
+    pub params: PipelineParams,
+    /// Stage 1.
+    pub segmenter: Box<dyn Segmenter>,
+    /// Stage 2.
+    pub matcher: Box<dyn StereoMatcher>,
+    /// The needle's shape.
+    pub needle: Needle,
+    /// The camera.
+    pub calibration: StereoCalibration,
+    /// Run the two views' segmentation on two threads.
+    pub parallel: bool,
+}
+
+/// An estimate and how it was found.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PipelineOutput {
+    /// The needle frame in the robot frame, m.
+    pub pose: Pose,
+    /// 0 to 1.
+    pub confidence: f64,
+    /// Numbers along the way.
+    pub diagnostics: Diagnostics,
+}
+
+impl NeedlePipeline {
+    /// The classical pipeline (colour segmentation, mask-row matching) for this camera.
+    pub fn classical(
+        calibration: StereoCalibration,
+        needle: Needle,
+    ) -> Result<Self, PerceptionError> {
+        calibration
+            .validate()
+            .map_err(|e| PerceptionError::Config {
+                message: e.to_string(),
+            })?;
+        Ok(Self {
+            params: PipelineParams::default(),
+            segmenter: Box::new(ColorSegmenter::default()),
+            matcher: Box::new(MaskRowMatcher::default()),
+            needle,
+            calibration,
+            parallel: false,
+        })
+    }
+
+    /// Where the needle is in a stereo pair, searched within `hint` (left- and right-image
+    /// regions, e.g. around the holding jaw's projection) or the whole frames. `seed` fixes
+    /// RANSAC's draws.
+    pub fn estimate(
+        &self,
+        left: &stitch_robot::RgbImage,
+        right: &stitch_robot::RgbImage,
+        hint: Option<[Rect; 2]>,
+        seed: u64,
+    ) -> Result<PipelineOutput, PerceptionError> {
+        self.run(left, right, hint, seed)
+    }
+
+    /// Disparity over the needle's region only (stages 1–2), for `stitch perceive disparity`.
+    pub fn disparity(
+        &self,
+        left: &stitch_robot::RgbImage,
+        right: &stitch_robot::RgbImage,
+        roi: Option<Rect>,
+    ) -> Result<DisparityMap, PerceptionError> {
+        let c = &self.calibration;
+        check_image(left, c.width, c.height, "left")?;
+        check_image(right, c.width, c.height, "right")?;
+        let (lm, rm, range) =
+            self.masks(left, right, roi.map(|r| [r, Rect::full(c.width, c.height)]))?;
+        self.matcher.disparity(&StereoInput {
+            left,
+            right,
+            left_masks: &lm,
+            right_masks: &rm,
+            min_disparity: range[0],
+            max_disparity: range[1],
+            segmenter: self.segmenter.as_ref(),
+        })
+    }
+
+    /// The disparity range the calibration allows: depths `depth_range_m`.
+    fn calibrated_range(&self) -> [u32; 2] {
+        let c = &self.calibration;
+        let [near, far] = self.params.depth_range_m;
+        let fb = c.fx * c.baseline_m;
+        [
+            (fb / far).floor().max(0.0) as u32,
+            (fb / near).ceil() as u32,
+        ]
+    }
+
+    fn masks(
+        &self,
+        left: &stitch_robot::RgbImage,
+        right: &stitch_robot::RgbImage,
+        hint: Option<[Rect; 2]>,
+    ) -> Result<(Masks, Masks, [u32; 2]), PerceptionError> {
+        let c = &self.calibration;
+        let full = Rect::full(c.width, c.height);
+        let [hl, hr] = hint.unwrap_or([full, full]);
+        let seg = self.segmenter.as_ref();
+        let locate_and_segment = |img: &stitch_robot::RgbImage, within: Rect| {
+            seg.locate(img, within).map(|roi| seg.segment(img, roi))
+        };
+        let (lm, rm) = if self.parallel {
+            rayon::join(
+                || locate_and_segment(left, hl),
+                || locate_and_segment(right, hr),
+            )
+        } else {
+            (locate_and_segment(left, hl), locate_and_segment(right, hr))
+        };
+        let lm = lm.ok_or(PerceptionError::NoMask {
+            view: "left".into(),
+        })?;
+        let rm = rm.ok_or(PerceptionError::NoMask {
+            view: "right".into(),
+        })?;
+        let [cmin, cmax] = self.calibrated_range();
+        let m = self.params.disparity_margin_px as i64;
+        let lo = i64::from(lm.roi.x0) - i64::from(rm.roi.x1) - m;
+        let hi = i64::from(lm.roi.x1) - i64::from(rm.roi.x0) + m;
+        let lo = lo.max(i64::from(cmin)).max(0) as u32;
+        let hi = hi.min(i64::from(cmax));
+        if hi < i64::from(lo) {
+            return Err(PerceptionError::NoMask {
+                view: format!(
+                    "both (the two views' needles are {}–{} pixels apart, outside the calibrated disparity range {cmin}–{cmax})",
+                    i64::from(lm.roi.x0) - i64::from(rm.roi.x1),
+                    i64::from(lm.roi.x1) - i64::from(rm.roi.x0)
+                ),
+            });
+        }
+        Ok((lm, rm, [lo, hi as u32]))
+    }
+
+    fn run(
+        &self,
+        left: &stitch_robot::RgbImage,
+        right: &stitch_robot::RgbImage,
+        hint: Option<[Rect; 2]>,
+        seed: u64,
+    ) -> Result<PipelineOutput, PerceptionError> {
+        let c = &self.calibration;
+        let p = &self.params;
+        check_image(left, c.width, c.height, "left")?;
+        check_image(right, c.width, c.height, "right")?;
+        let t0 = Instant::now();
+        let (lm, rm, range) = self.masks(left, right, hint)?;
+        let t1 = Instant::now();
+        let disp = self.matcher.disparity(&StereoInput {
+            left,
+            right,
+            left_masks: &lm,
+            right_masks: &rm,
+            min_disparity: range[0],
+            max_disparity: range[1],
+            segmenter: self.segmenter.as_ref(),
+        })?;
+        let t2 = Instant::now();
+        let cloud = point_cloud(&disp, &lm, c, p.max_points);
+        let t3 = Instant::now();
+        let mut diag = Diagnostics {
+            rois: [lm.roi, rm.roi],
+            disparity_range: range,
+            needle_px: lm.needle_count(),
+            cloud_points: cloud.len(),
+            plane_inliers: 0,
+            circle_inliers: 0,
+            rms_m: 0.0,
+            arc_rad: 0.0,
+            thread_px: [0, 0],
+            taper: [None, None],
+            times: StageTimes {
+                segment: t1 - t0,
+                disparity: t2 - t1,
+                cloud: t3 - t2,
+                fit: Duration::ZERO,
+            },
+        };
+        if cloud.len() < p.min_points {
+            return Err(PerceptionError::TooFewPoints {
+                found: cloud.len(),
+                needed: p.min_points,
+            });
+        }
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let r = self.needle.radius_m;
+        let (plane, plane_inliers) =
+            fit::ransac_plane(&cloud, &p.ransac, &mut rng).ok_or_else(|| {
+                PerceptionError::BadFit {
+                    why: "no plane through the points".into(),
+                }
+            })?;
+        diag.plane_inliers = plane_inliers.len();
+        let on_plane: Vec<Point> = plane_inliers.iter().map(|&i| cloud[i]).collect();
+        let (circle, inliers) = fit::ransac_circle(&on_plane, &plane, r, &p.ransac, &mut rng)
+            .ok_or_else(|| PerceptionError::BadFit {
+                why: format!("no {:.1} mm circle through the points", r * 1e3),
+            })?;
+        let pts: Vec<Point> = inliers.iter().map(|&i| on_plane[i]).collect();
+        diag.circle_inliers = pts.len();
+        diag.rms_m = (pts.iter().map(|q| circle.distance(q).powi(2)).sum::<f64>()
+            / pts.len().max(1) as f64)
+            .sqrt();
+        let share = pts.len() as f64 / cloud.len() as f64;
+        if pts.len() < p.min_points || share < p.min_inlier_share {
+            return Err(PerceptionError::BadFit {
+                why: format!(
+                    "{} of {} points on the best circle ({:.0} %)",
+                    pts.len(),
+                    cloud.len(),
+                    100.0 * share
+                ),
+            });
+        }
+        let arc = arc_extent(&pts, &circle).ok_or_else(|| PerceptionError::BadFit {
+            why: "no arc".into(),
+        })?;
+        diag.arc_rad = arc.extent;
+        if arc.extent < p.min_arc_rad {
+            return Err(PerceptionError::BadFit {
+                why: format!(
+                    "only {:.0}° of the needle's arc seen (at least {:.0}° needed)",
+                    arc.extent.to_degrees(),
+                    p.min_arc_rad.to_degrees()
+                ),
+            });
+        }
+        if arc.extent > PI + 2.0 * p.full_arc_tolerance_rad {
+            return Err(PerceptionError::BadFit {
+                why: format!(
+                    "points cover {:.0}° of the circle, more than a half-circle needle",
+                    arc.extent.to_degrees()
+                ),
+            });
+        }
+        // The ends: both seen → centre the half circle on the arc; one hidden → the thread
+        // says which end is seen.
+        let (e1, e2) = plane_basis(&circle.normal);
+        let at = |a: f64| circle.center + (e1 * a.cos() + e2 * a.sin()) * r;
+        let cap = self.needle.wire_diameter_m / 2.0 / r;
+        let (lo_end, hi_end) = (arc.start + cap, arc.start + arc.extent - cap);
+        let full = (arc.extent - PI).abs() <= p.full_arc_tolerance_rad;
+        let threads = [
+            self.thread_near(&lm, &at(lo_end)),
+            self.thread_near(&lm, &at(hi_end)),
+        ];
+        // The tip tapers: the wire's width in the image near an end against its width 3 mm
+        // along, for each observed end (the direction along the arc into the needle).
+        let step = 0.001 / r;
+        let taper = [
+            self.width_ratio(&lm, &circle, lo_end, step),
+            self.width_ratio(&lm, &circle, hi_end, -step),
+        ];
+        diag.thread_px = threads;
+        diag.taper = taper;
+        // Evidence that the observed low end is the tip: the end whose wire narrows more
+        // towards it is the tip (or, with one end measured, a tapered end is the tip and a
+        // thick one the swage), and the thread leaves at the swage; each counts 2, and
+        // contradicting cues cancel.
+        let by_thread = |i: usize| {
+            threads[i] >= p.min_thread_px
+                && threads[i] as f64 >= p.swage_ratio * threads[1 - i] as f64
+        };
+        let tip_like = taper.map(|t| t.is_some_and(|t| t > 0.2 && t < p.tip_taper_ratio));
+        let taper_score = match taper {
+            [Some(lo), Some(hi)] if hi - lo > p.taper_difference => 2,
+            [Some(lo), Some(hi)] if lo - hi > p.taper_difference => -2,
+            [Some(_), Some(_)] => 0,
+            [Some(lo), None] if lo < p.tip_taper_ratio => 2,
+            [Some(lo), None] if lo > p.swage_taper_ratio => -2,
+            [None, Some(hi)] if hi < p.tip_taper_ratio => -2,
+            [None, Some(hi)] if hi > p.swage_taper_ratio => 2,
+            _ => 0,
+        };
+        let thread_score = 2 * (i32::from(by_thread(1)) - i32::from(by_thread(0)));
+        let score = taper_score + thread_score;
+        if score.abs() < 2 {
+            return Err(PerceptionError::AmbiguousEndpoints {
+                why: format!(
+                    "thread pixels near the two ends: {} and {}; width at the ends against 3 mm in: {} and {}",
+                    threads[0],
+                    threads[1],
+                    taper[0].map_or("–".into(), |t| format!("{t:.2}")),
+                    taper[1].map_or("–".into(), |t| format!("{t:.2}")),
+                ),
+            });
+        }
+        let tip_is_lo = score > 0;
+        // Anchor on an end known to be real: the swage if both ends are seen (its end is
+        // crisp, while the taper's last fraction of a millimetre may fall below the mask's
+        // threshold), the tapered tip if that is the one seen, else the swage the thread or
+        // its thickness marked. The swage's rounded cap reaches past its centre line.
+        let swage_cap = SWAGE_RADIUS_SCALE * self.needle.wire_diameter_m / 2.0 / r;
+        let (lo_obs, hi_obs) = (arc.start, arc.start + arc.extent);
+        let tip_seen = if tip_is_lo { tip_like[0] } else { tip_like[1] };
+        let (tip_angle, swage_angle) = match (full || !tip_seen, tip_is_lo) {
+            (true, true) => (hi_obs - swage_cap - PI, hi_obs - swage_cap),
+            (true, false) => (lo_obs + swage_cap + PI, lo_obs + swage_cap),
+            (false, true) => (lo_obs, lo_obs + PI),
+            (false, false) => (hi_obs, hi_obs - PI),
+        };
+        // Tip to swage runs counter-clockwise about the needle's +z.
+        let z = if swage_angle > tip_angle {
+            circle.normal
+        } else {
+            -circle.normal
+        };
+        let tip = at(tip_angle);
+        let x = (tip - circle.center).normalize();
+        let y = z.cross(&x);
+        let rot = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[x, y, z]));
+        let pose = Pose::from_parts(
+            nalgebra::Translation3::from(circle.center.coords),
+            UnitQuaternion::from_rotation_matrix(&rot),
+        );
+        let confidence = confidence(&arc, share, diag.rms_m, p, full);
+        diag.times.fit = t3.elapsed();
+        if confidence < p.min_confidence {
+            return Err(PerceptionError::Uncertain { confidence });
+        }
+        Ok(PipelineOutput {
+            pose,
+            confidence,
+            diagnostics: diag,
+        })
+    }
+
+    /// The needle mask's width across the projected arc, pixels, averaged at 0.3, 0.6 and
+    /// 0.9 mm from the end at `angle` (moving by `step` rad per mm into the needle), over the
+    /// same at 3 mm: `None` if the wire is not seen there.
+    fn width_ratio(&self, masks: &Masks, circle: &Circle, angle: f64, step: f64) -> Option<f64> {
+        let width_at = |a: f64| -> Option<f64> {
+            let c = &self.calibration;
+            let (e1, e2) = plane_basis(&circle.normal);
+            let r = circle.radius;
+            let to_cam = c.camera_to_robot.inverse();
+            let p = to_cam * (circle.center + (e1 * a.cos() + e2 * a.sin()) * r);
+            let q = to_cam * (circle.center + (e1 * (a + 1e-3).cos() + e2 * (a + 1e-3).sin()) * r);
+            if p.z <= 1e-6 || q.z <= 1e-6 {
+                return None;
+            }
+            let proj = |v: &Point| (c.fx * v.x / v.z + c.cx, c.fy * v.y / v.z + c.cy);
+            let (pu, pv) = proj(&p);
+            let (qu, qv) = proj(&q);
+            let (tu, tv) = (qu - pu, qv - pv);
+            let n = (tu * tu + tv * tv).sqrt();
+            if n < 1e-9 {
+                return None;
+            }
+            let (nu, nv) = (-tv / n, tu / n);
+            let reach = 3.0 * c.fx * self.needle.wire_diameter_m / p.z + 2.0;
+            let mut count = 0;
+            let mut s = -reach;
+            while s <= reach {
+                let (x, y) = (pu + nu * s, pv + nv * s);
+                if x >= 0.0 && y >= 0.0 && masks.is_needle(x as u32, y as u32) {
+                    count += 1;
+                }
+                s += 0.25;
+            }
+            Some(f64::from(count) * 0.25)
+        };
+        let near: Vec<f64> = [0.3, 0.6, 0.9]
+            .iter()
+            .filter_map(|mm| width_at(angle + step * mm))
+            .collect();
+        let inner = width_at(angle + step * 3.0)?;
+        if near.is_empty() || inner < 1.0 {
+            return None;
+        }
+        Some(near.iter().sum::<f64>() / near.len() as f64 / inner)
+    }
+
+    /// Thread pixels in the left view within `swage_search_m` of a robot-frame point.
+    fn thread_near(&self, masks: &Masks, p: &Point) -> usize {
+        let c = &self.calibration;
+        let q = c.camera_to_robot.inverse() * p;
+        if q.z <= 1e-6 {
+            return 0;
+        }
+        let (u, v) = (c.fx * q.x / q.z + c.cx, c.fy * q.y / q.z + c.cy);
+        let rad = (c.fx * self.params.swage_search_m / q.z).max(2.0);
+        let (x0, x1) = (
+            (u - rad).floor().max(0.0) as u32,
+            (u + rad).ceil().max(0.0) as u32,
+        );
+        let (y0, y1) = (
+            (v - rad).floor().max(0.0) as u32,
+            (v + rad).ceil().max(0.0) as u32,
+        );
+        let mut n = 0;
+        for y in y0..=y1 {
+            for x in x0..=x1 {
+                let (dx, dy) = (x as f64 + 0.5 - u, y as f64 + 0.5 - v);
+                if dx * dx + dy * dy <= rad * rad && masks.is_thread(x, y) {
+                    n += 1;
+                }
+            }
+        }
+        n
+    }
+}
+
+/// How much to trust a fit, 0 to 1: the product of the share of points on the circle, how
+/// much of the half circle the points cover (full marks from half of it), how tightly they
+/// hug the circle (full marks within half the inlier threshold), and 0.9 if an end is hidden.
+fn confidence(
+    arc: &fit::ArcExtent,
+    inlier_share: f64,
+    rms_m: f64,
+    p: &PipelineParams,
+    full: bool,
+) -> f64 {
+    let observed = ((arc.extent - arc.largest_inner_gap) / PI).clamp(0.0, 1.0);
+    let coverage = (observed / 0.5).min(1.0);
+    let t = p.ransac.circle_threshold_m;
+    let tight = (2.0 * (t - rms_m) / t).clamp(0.0, 1.0);
+    let both_ends = if full { 1.0 } else { 0.9 };
+    (inlier_share.clamp(0.0, 1.0).sqrt() * coverage * tight * both_ends).clamp(0.0, 1.0)
+}
+
+/// The needle's points in the robot frame: every left-image pixel that is needle and has a
+/// disparity, back-projected through the calibration; evenly subsampled to at most `max`.
+pub fn point_cloud(
+    disp: &DisparityMap,
+    masks: &Masks,
+    c: &StereoCalibration,
+    max: usize,
+) -> Vec<Point> {
+    let mut pts = Vec::new();
+    let r = disp.roi;
+    for y in r.y0..r.y1 {
+        for x in r.x0..r.x1 {
+            let Some(d) = disp.at(x, y) else { continue };
+            if d <= 0.0 || !masks.is_needle(x, y) {
+                continue;
+            }
+            let z = c.fx * c.baseline_m / f64::from(d);
+            let xc = (f64::from(x) + 0.5 - c.cx) * z / c.fx;
+            let yc = (f64::from(y) + 0.5 - c.cy) * z / c.fy;
+            pts.push(Point::new(xc, yc, z));
+        }
+    }
+    if pts.len() > max && max > 0 {
+        let step = pts.len() as f64 / max as f64;
+        pts = (0..max).map(|i| pts[(i as f64 * step) as usize]).collect();
+    }
+    pts.iter().map(|p| c.camera_to_robot * p).collect()
+}
+
+/// The pipeline behind [`NeedleEstimator`]: captures a pair from a camera and estimates.
+#[derive(Debug)]
+pub struct PipelineEstimator<C> {
+    camera: C,
+    pipeline: NeedlePipeline,
+    estimates: u64,
+    seed: u64,
+}
+
+impl<C: StereoCamera + std::fmt::Debug> PipelineEstimator<C> {
+    /// An estimator over `camera`; RANSAC draws are seeded from `seed` and a counter.
+    pub fn new(camera: C, pipeline: NeedlePipeline, seed: u64) -> Self {
+        Self {
+            camera,
+            pipeline,
+            estimates: 0,
+            seed,
+        }
+    }
+
+    /// The camera.
+    pub fn camera(&self) -> &C {
+        &self.camera
+    }
+}
+
+impl<C: StereoCamera + std::fmt::Debug> NeedleEstimator for PipelineEstimator<C> {
+    fn estimate_needle(&mut self) -> Result<NeedleEstimate, PerceptionError> {
+        let StereoFrame { stamp, left, right } =
+            self.camera.capture().map_err(|e| PerceptionError::Camera {
+                message: e.to_string(),
+            })?;
+        self.estimates += 1;
+        let seed = self
+            .seed
+            .wrapping_mul(0x9E37_79B9)
+            .wrapping_add(self.estimates);
+        let out = self.pipeline.estimate(&left, &right, None, seed)?;
+        Ok(NeedleEstimate {
+            pose: out.pose,
+            confidence: out.confidence,
+            stamp,
+        })
+    }
+}
+
+/// Helper for tests and benches: the error between an estimate and the truth.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct PoseError {
+    /// Centre distance, m.
+    pub center_m: f64,
+    /// Tip distance, m.
+    pub tip_m: f64,
+    /// Swage distance, m.
+    pub swage_m: f64,
+    /// Angle between the normals, rad.
+    pub normal_rad: f64,
+}
+
+impl PoseError {
+    /// Compare `estimate` with `truth` for `needle`.
+    pub fn between(needle: &Needle, estimate: &Pose, truth: &Pose) -> Self {
+        let (a, b) = (needle.in_world(estimate), needle.in_world(truth));
+        Self {
+            center_m: (a.center - b.center).norm(),
+            tip_m: (a.tip - b.tip).norm(),
+            swage_m: (a.swage - b.swage).norm(),
+            normal_rad: a.normal.angle(&b.normal),
+        }
+    }
+
+    /// The larger endpoint error, m.
+    pub fn endpoints_m(&self) -> f64 {
+        self.tip_m.max(self.swage_m)
+    }
+}

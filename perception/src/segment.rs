@@ -1,0 +1,360 @@
+//! Stage 1, segmentation: needle and thread masks.
+//!
+//! The classical default ([`ColorSegmenter`]) classifies pixels by colour: the needle is
+//! bright and unsaturated (polished steel, white highlights), the thread strongly violet
+//! (blue well above red and green), tissue and drape saturated red or green, instruments
+//! dark. A learned segmenter plugs in behind [`Segmenter`].
+//!
+//! Finding the needle in a full frame costs little: a coarse grid (every `stride` pixels)
+//! finds candidate pixels, the largest connected group and its neighbours give the region
+//! of interest, and only that region is classified at full resolution.
+
+use crate::PerceptionError;
+use serde::{Deserialize, Serialize};
+use stitch_robot::RgbImage;
+
+/// A pixel rectangle, `[x0, x1) × [y0, y1)`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct Rect {
+    /// Left edge (inclusive).
+    pub x0: u32,
+    /// Top edge (inclusive).
+    pub y0: u32,
+    /// Right edge (exclusive).
+    pub x1: u32,
+    /// Bottom edge (exclusive).
+    pub y1: u32,
+}
+
+impl Rect {
+    /// Width, pixels.
+    pub fn width(&self) -> u32 {
+        self.x1.saturating_sub(self.x0)
+    }
+    /// Height, pixels.
+    pub fn height(&self) -> u32 {
+        self.y1.saturating_sub(self.y0)
+    }
+    /// Whether it holds no pixel.
+    pub fn is_empty(&self) -> bool {
+        self.width() == 0 || self.height() == 0
+    }
+    /// Grown by `m` pixels on every side, clipped to a `w × h` image.
+    pub fn grown(&self, m: u32, w: u32, h: u32) -> Rect {
+        Rect {
+            x0: self.x0.saturating_sub(m),
+            y0: self.y0.saturating_sub(m),
+            x1: (self.x1 + m).min(w),
+            y1: (self.y1 + m).min(h),
+        }
+    }
+    /// The whole of a `w × h` image.
+    pub fn full(w: u32, h: u32) -> Rect {
+        Rect {
+            x0: 0,
+            y0: 0,
+            x1: w,
+            y1: h,
+        }
+    }
+}
+
+/// Needle and thread masks over a region of one image.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Masks {
+    /// The region they cover, image pixels.
+    pub roi: Rect,
+    /// 1 where the needle is, row-major over `roi`.
+    pub needle: Vec<u8>,
+    /// 1 where the thread is, row-major over `roi`.
+    pub thread: Vec<u8>,
+}
+
+impl Masks {
+    /// Whether image pixel `(x, y)` is needle (false outside the region).
+    pub fn is_needle(&self, x: u32, y: u32) -> bool {
+        self.at(&self.needle, x, y)
+    }
+    /// Whether image pixel `(x, y)` is thread (false outside the region).
+    pub fn is_thread(&self, x: u32, y: u32) -> bool {
+        self.at(&self.thread, x, y)
+    }
+    fn at(&self, m: &[u8], x: u32, y: u32) -> bool {
+        let r = &self.roi;
+        x >= r.x0
+            && x < r.x1
+            && y >= r.y0
+            && y < r.y1
+            && m[((y - r.y0) * r.width() + (x - r.x0)) as usize] != 0
+    }
+    /// Needle pixels.
+    pub fn needle_count(&self) -> usize {
+        self.needle.iter().filter(|&&v| v != 0).count()
+    }
+}
+
+/// Makes needle and thread masks from one image.
+pub trait Segmenter: Send + Sync + std::fmt::Debug {
+    /// Where the needle appears in `image`, searched over `within`: a region of interest
+    /// around it (including margin for the thread near it), or `None` if no needle is seen.
+    fn locate(&self, image: &RgbImage, within: Rect) -> Option<Rect>;
+    /// Needle and thread masks over `roi`.
+    fn segment(&self, image: &RgbImage, roi: Rect) -> Masks;
+    /// How needle-like a pixel is: positive inside the needle mask, negative outside, with
+    /// a zero crossing at its edge (for sub-pixel edges). Needs no neighbours.
+    fn needleness(&self, rgb: [u8; 3]) -> f32;
+}
+
+/// The classical colour segmenter's thresholds.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ColorSegmenter {
+    /// Least brightness (largest channel) of a needle pixel, 0–255.
+    pub needle_min_value: u8,
+    /// Most saturation ((max − min) / max) of a needle pixel.
+    pub needle_max_saturation: f32,
+    /// Least amount blue exceeds red by in a thread pixel, levels.
+    pub thread_blue_over_red: u8,
+    /// Least amount blue exceeds green by in a thread pixel, levels.
+    pub thread_blue_over_green: u8,
+    /// Grid step of the full-frame search, pixels (at most the needle's width in pixels).
+    pub stride: u32,
+    /// Least coarse-grid hits for a needle.
+    pub min_hits: usize,
+    /// Margin added around the needle's region, pixels.
+    pub margin_px: u32,
+    /// Groups of hits at most this far from the largest join it (parts of one needle split
+    /// by an occluder), pixels.
+    pub join_px: u32,
+}
+
+impl Default for ColorSegmenter {
+    /// Thresholds set on rendered frames (see docs/perception.md); a lab re-tunes them on its
+    /// own images with `stitch perceive needle`.
+    fn default() -> Self {
+        Self {
+            needle_min_value: 72,
+            needle_max_saturation: 0.22,
+            thread_blue_over_red: 12,
+            thread_blue_over_green: 45,
+            stride: 3,
+            min_hits: 6,
+            margin_px: 24,
+            join_px: 90,
+        }
+    }
+}
+
+impl ColorSegmenter {
+    #[inline]
+    fn is_needle(&self, p: &[u8]) -> bool {
+        let max = p[0].max(p[1]).max(p[2]);
+        let min = p[0].min(p[1]).min(p[2]);
+        max >= self.needle_min_value
+            && f32::from(max - min) < self.needle_max_saturation * f32::from(max)
+    }
+    #[inline]
+    fn is_thread(&self, p: &[u8]) -> bool {
+        let (r, g, b) = (i16::from(p[0]), i16::from(p[1]), i16::from(p[2]));
+        b >= r + i16::from(self.thread_blue_over_red)
+            && b >= g + i16::from(self.thread_blue_over_green)
+    }
+}
+
+impl Segmenter for ColorSegmenter {
+    fn locate(&self, image: &RgbImage, within: Rect) -> Option<Rect> {
+        let s = self.stride.max(1);
+        let w = image.width as usize;
+        let gw = within.width().div_ceil(s) as usize;
+        let gh = within.height().div_ceil(s) as usize;
+        if gw == 0 || gh == 0 {
+            return None;
+        }
+        let mut grid = vec![0u32; gw * gh]; // 0: nothing, u32::MAX: hit, else a label
+        let mut hits = 0usize;
+        for gy in 0..gh {
+            let y = within.y0 as usize + gy * s as usize;
+            let row = &image.data[y * w * 3..(y + 1) * w * 3];
+            for gx in 0..gw {
+                let x = within.x0 as usize + gx * s as usize;
+                if self.is_needle(&row[x * 3..x * 3 + 3]) {
+                    grid[gy * gw + gx] = u32::MAX;
+                    hits += 1;
+                }
+            }
+        }
+        if hits < self.min_hits {
+            return None;
+        }
+        // Connected groups of hits (8-neighbours, one empty cell bridged).
+        let mut groups: Vec<(usize, [usize; 4])> = Vec::new(); // (count, [gx0, gy0, gx1, gy1])
+        let mut stack = Vec::new();
+        for start in 0..grid.len() {
+            if grid[start] != u32::MAX {
+                continue;
+            }
+            let label = groups.len() as u32 + 1;
+            grid[start] = label;
+            stack.push(start);
+            let mut g = (0usize, [usize::MAX, usize::MAX, 0, 0]);
+            while let Some(i) = stack.pop() {
+                let (x, y) = (i % gw, i / gw);
+                g.0 += 1;
+                g.1 = [g.1[0].min(x), g.1[1].min(y), g.1[2].max(x), g.1[3].max(y)];
+                for dy in -2i64..=2 {
+                    for dx in -2i64..=2 {
+                        let (nx, ny) = (x as i64 + dx, y as i64 + dy);
+                        if nx < 0 || ny < 0 || nx >= gw as i64 || ny >= gh as i64 {
+                            continue;
+                        }
+                        let j = ny as usize * gw + nx as usize;
+                        if grid[j] == u32::MAX {
+                            grid[j] = label;
+                            stack.push(j);
+                        }
+                    }
+                }
+            }
+            groups.push(g);
+        }
+        let best = groups.iter().max_by_key(|g| g.0)?;
+        if best.0 < self.min_hits {
+            return None;
+        }
+        let join = (self.join_px / s) as usize;
+        let mut b = best.1;
+        for g in &groups {
+            let gap_x = g.1[0].saturating_sub(b[2]).max(b[0].saturating_sub(g.1[2]));
+            let gap_y = g.1[1].saturating_sub(b[3]).max(b[1].saturating_sub(g.1[3]));
+            if g.0 >= 2 && gap_x <= join && gap_y <= join {
+                b = [
+                    b[0].min(g.1[0]),
+                    b[1].min(g.1[1]),
+                    b[2].max(g.1[2]),
+                    b[3].max(g.1[3]),
+                ];
+            }
+        }
+        let rect = Rect {
+            x0: within.x0 + b[0] as u32 * s,
+            y0: within.y0 + b[1] as u32 * s,
+            x1: within.x0 + (b[2] as u32 + 1) * s,
+            y1: within.y0 + (b[3] as u32 + 1) * s,
+        };
+        Some(rect.grown(self.margin_px, image.width, image.height))
+    }
+
+    fn segment(&self, image: &RgbImage, roi: Rect) -> Masks {
+        let w = image.width as usize;
+        let (rw, rh) = (roi.width() as usize, roi.height() as usize);
+        let mut needle = vec![0u8; rw * rh];
+        let mut thread = vec![0u8; rw * rh];
+        for y in 0..rh {
+            let iy = roi.y0 as usize + y;
+            let row = &image.data[(iy * w + roi.x0 as usize) * 3..(iy * w + roi.x1 as usize) * 3];
+            for (x, p) in row.chunks_exact(3).enumerate() {
+                needle[y * rw + x] = u8::from(self.is_needle(p));
+                thread[y * rw + x] = u8::from(self.is_thread(p));
+            }
+        }
+        Masks {
+            roi,
+            needle,
+            thread,
+        }
+    }
+
+    fn needleness(&self, p: [u8; 3]) -> f32 {
+        let max = f32::from(p[0].max(p[1]).max(p[2]));
+        let min = f32::from(p[0].min(p[1]).min(p[2]));
+        let by_saturation = self.needle_max_saturation * max - (max - min);
+        let by_value = max - f32::from(self.needle_min_value);
+        by_saturation.min(by_value)
+    }
+}
+
+/// Check an image has the size its calibration says and a whole number of pixels.
+pub fn check_image(
+    image: &RgbImage,
+    width: u32,
+    height: u32,
+    which: &str,
+) -> Result<(), PerceptionError> {
+    if image.width != width || image.height != height {
+        return Err(PerceptionError::Camera {
+            message: format!(
+                "{which} image is {}×{}; the calibration says {width}×{height}",
+                image.width, image.height
+            ),
+        });
+    }
+    if image.data.len() != width as usize * height as usize * 3 {
+        return Err(PerceptionError::Camera {
+            message: format!(
+                "{which} image has {} bytes; {width}×{height} RGB needs {}",
+                image.data.len(),
+                width as usize * height as usize * 3
+            ),
+        });
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn image_with(w: u32, h: u32, bg: [u8; 3], draw: &[(u32, u32, [u8; 3])]) -> RgbImage {
+        let mut img = RgbImage::new(w, h);
+        for p in img.data.chunks_exact_mut(3) {
+            p.copy_from_slice(&bg);
+        }
+        for &(x, y, c) in draw {
+            let i = ((y * w + x) * 3) as usize;
+            img.data[i..i + 3].copy_from_slice(&c);
+        }
+        img
+    }
+
+    #[test]
+    fn grey_is_needle_violet_is_thread_pink_is_neither() {
+        let s = ColorSegmenter::default();
+        assert!(s.is_needle(&[150, 150, 155]));
+        assert!(s.is_needle(&[255, 255, 255]));
+        assert!(!s.is_needle(&[206, 122, 118]), "tissue");
+        assert!(!s.is_needle(&[40, 40, 44]), "tool");
+        assert!(s.is_thread(&[118, 58, 172]));
+        assert!(!s.is_thread(&[52, 112, 78]), "drape");
+        assert!(s.needleness([150, 150, 150]) > 0.0);
+        assert!(s.needleness([206, 122, 118]) < 0.0);
+    }
+
+    #[test]
+    fn the_needle_is_located_and_specks_are_ignored() {
+        let mut draw: Vec<_> = (100..160)
+            .flat_map(|x| (50..56).map(move |y| (x, y, [160, 160, 160])))
+            .collect();
+        draw.push((10, 10, [200, 200, 200])); // a speck far away
+        let img = image_with(320, 240, [206, 122, 118], &draw);
+        let s = ColorSegmenter::default();
+        let r = s.locate(&img, Rect::full(320, 240)).expect("found");
+        assert!(
+            r.x0 <= 100 && r.x1 >= 160 && r.y0 <= 50 && r.y1 >= 56,
+            "{r:?}"
+        );
+        assert!(r.x0 > 10 && r.y0 > 10, "speck joined: {r:?}");
+        let m = s.segment(&img, r);
+        assert_eq!(m.needle_count(), 60 * 6);
+        assert!(m.is_needle(120, 52) && !m.is_needle(120, 60));
+        let blank = image_with(320, 240, [206, 122, 118], &[]);
+        assert_eq!(s.locate(&blank, Rect::full(320, 240)), None);
+    }
+
+    #[test]
+    fn images_of_the_wrong_size_are_refused() {
+        let img = RgbImage::new(10, 10);
+        assert!(check_image(&img, 10, 10, "left").is_ok());
+        let e = check_image(&img, 20, 10, "left").expect_err("size");
+        assert!(e.to_string().contains("10×10"), "{e}");
+    }
+}
