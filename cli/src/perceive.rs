@@ -80,6 +80,10 @@ pub enum BenchCommand {
         /// Print JSON instead of tables.
         #[arg(long)]
         json: bool,
+        /// Write each frame's result (error or typed failure) as JSON Lines into this
+        /// directory, one file per matcher and mode.
+        #[arg(long)]
+        details: Option<PathBuf>,
         /// Matchers to measure (the default pipeline uses mask-row).
         #[arg(long, value_enum, value_delimiter = ',', default_values_t = [MatcherKind::MaskRow, MatcherKind::Sgm])]
         matchers: Vec<MatcherKind>,
@@ -436,7 +440,7 @@ fn latency(mut v: Vec<f64>) -> Latency {
 #[derive(Debug, Serialize)]
 struct BenchRow {
     matcher: MatcherKind,
-    threads: &'static str,
+    mode: &'static str,
     render: Latency,
     segment: Latency,
     disparity: Latency,
@@ -453,8 +457,12 @@ pub fn bench(command: BenchCommand) -> anyhow::Result<u8> {
         frames,
         seed,
         json,
+        details,
         matchers,
     } = command;
+    if let Some(d) = &details {
+        std::fs::create_dir_all(d).with_context(|| format!("cannot create {}", d.display()))?;
+    }
     if frames == 0 {
         anyhow::bail!("--frames must be at least 1");
     }
@@ -463,20 +471,35 @@ pub fn bench(command: BenchCommand) -> anyhow::Result<u8> {
     let mut rows = Vec::new();
     let started = Instant::now();
     for &m in &matchers {
-        for parallel in [false, true] {
+        for (parallel, hinted) in [(false, false), (true, false), (false, true)] {
             let mut p =
                 NeedlePipeline::classical(renderer.calibration().clone(), Needle::default())?;
             p.matcher = matcher(m);
             p.parallel = parallel;
-            let results = evaluate::run(&p, &renderer, &samples, seed);
-            rows.push(row(m, parallel, &results));
+            let results = evaluate::run(&p, &renderer, &samples, seed, hinted);
+            let r = row(m, parallel, hinted, &results);
+            if let Some(d) = &details {
+                let path = d.join(format!(
+                    "{}-{}.jsonl",
+                    m_name(m),
+                    r.mode.replace([',', ' '], "-").replace("--", "-")
+                ));
+                let mut text = String::new();
+                for (i, f) in results.iter().enumerate() {
+                    text += &serde_json::to_string(&serde_json::json!({"frame": i, "result": f}))?;
+                    text.push('\n');
+                }
+                std::fs::write(&path, text)
+                    .with_context(|| format!("cannot write {}", path.display()))?;
+            }
             eprintln!(
                 "{} {}: {} frames in {:.1} s",
                 m_name(m),
-                if parallel { "all cores" } else { "1 thread" },
+                r.mode,
                 frames,
                 started.elapsed().as_secs_f64()
             );
+            rows.push(r);
         }
     }
     let mut out = std::io::stdout().lock();
@@ -496,7 +519,7 @@ fn m_name(m: MatcherKind) -> &'static str {
     }
 }
 
-fn row(m: MatcherKind, parallel: bool, results: &[FrameResult]) -> BenchRow {
+fn row(m: MatcherKind, parallel: bool, hinted: bool, results: &[FrameResult]) -> BenchRow {
     let secs = |f: &dyn Fn(&FrameResult) -> Duration| -> Vec<f64> {
         results
             .iter()
@@ -514,7 +537,11 @@ fn row(m: MatcherKind, parallel: bool, results: &[FrameResult]) -> BenchRow {
     let over: Vec<FrameResult> = results.iter().filter(|r| r.thread_over).cloned().collect();
     BenchRow {
         matcher: m,
-        threads: if parallel { "all cores" } else { "1 thread" },
+        mode: match (parallel, hinted) {
+            (false, false) => "full frame, 1 thread",
+            (true, false) => "full frame, all cores",
+            (_, true) => "jaw known, 1 thread",
+        },
         render: latency(results.iter().map(|r| r.render.as_secs_f64()).collect()),
         segment: latency(secs(&|r| r.times.segment)),
         disparity: latency(secs(&|r| r.times.disparity)),
@@ -532,13 +559,13 @@ fn tables(rows: &[BenchRow], frames: usize, seed: u64) -> String {
         "Stereo needle pipeline on {frames} rendered 1280×960 pairs (seed {seed}), {} cores\n\nLatency per stereo pair, ms (median / p95; stage times over frames with an estimate)\n\n",
         std::thread::available_parallelism().map_or(1, |n| n.get())
     );
-    s += "| matcher | threads | render | segment | disparity | cloud | fit | end to end |\n|---|---|---|---|---|---|---|---|\n";
+    s += "| matcher | mode | render | segment | disparity | cloud | fit | end to end |\n|---|---|---|---|---|---|---|---|\n";
     let l = |x: &Latency| format!("{:.2} / {:.2}", x.median_ms, x.p95_ms);
     for r in rows {
         s += &format!(
             "| {} | {} | {} | {} | {} | {} | {} | {} |\n",
             m_name(r.matcher),
-            r.threads,
+            r.mode,
             l(&r.render),
             l(&r.segment),
             l(&r.disparity),
@@ -565,18 +592,20 @@ fn tables(rows: &[BenchRow], frames: usize, seed: u64) -> String {
             x.wrong
         )
     };
-    for r in rows.iter().filter(|r| r.threads == "1 thread") {
-        s += &a(m_name(r.matcher).to_string(), &r.accuracy);
-        for (j, acc) in &r.by_jaw {
-            s += &a(format!("{} ({j} jaw)", m_name(r.matcher)), acc);
-        }
-        s += &a(
-            format!("{} (thread over the needle)", m_name(r.matcher)),
-            &r.thread_over,
+    for r in rows.iter().filter(|r| !r.mode.contains("all cores")) {
+        let name = format!(
+            "{}, {}",
+            m_name(r.matcher),
+            r.mode.trim_end_matches(", 1 thread")
         );
+        s += &a(name.clone(), &r.accuracy);
+        for (j, acc) in &r.by_jaw {
+            s += &a(format!("{name} ({j} jaw)"), acc);
+        }
+        s += &a(format!("{name} (thread over the needle)"), &r.thread_over);
     }
     s += "\nTyped failures by kind\n\n";
-    for r in rows.iter().filter(|r| r.threads == "1 thread") {
+    for r in rows.iter().filter(|r| !r.mode.contains("all cores")) {
         let kinds: Vec<String> = r
             .accuracy
             .failure_kinds
@@ -584,8 +613,9 @@ fn tables(rows: &[BenchRow], frames: usize, seed: u64) -> String {
             .map(|(k, n)| format!("{k} {n}"))
             .collect();
         s += &format!(
-            "- {}: {}\n",
+            "- {}, {}: {}\n",
             m_name(r.matcher),
+            r.mode.trim_end_matches(", 1 thread"),
             if kinds.is_empty() {
                 "none".into()
             } else {

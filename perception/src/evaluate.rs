@@ -8,7 +8,7 @@
 //! the needle. Everything from one seed.
 
 use crate::PerceptionError;
-use crate::pipeline::{NeedlePipeline, PoseError};
+use crate::pipeline::{JawHint, NeedleEnd, NeedlePipeline, PoseError};
 use nalgebra::{Translation3, Unit, UnitQuaternion};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
@@ -128,12 +128,28 @@ pub struct FrameResult {
     pub thread_over: bool,
 }
 
-/// Render and estimate every sample; noise from `seed`.
+/// The jaw hint a sample's robot would give: where its holding jaw is and which end it holds
+/// nearer (the right jaw grasps near the swage, the left near the tip).
+pub fn jaw_hint(s: &Sample) -> JawHint {
+    let tool = s.scene.tools[0].pose;
+    JawHint {
+        jaw: Point::from(tool.translation.vector),
+        end: if s.jaw == "right" {
+            NeedleEnd::Swage
+        } else {
+            NeedleEnd::Tip
+        },
+    }
+}
+
+/// Render and estimate every sample, blind (full frames) or with each sample's jaw hint;
+/// noise from `seed`.
 pub fn run(
     pipeline: &NeedlePipeline,
     renderer: &StereoRenderer,
     samples: &[Sample],
     seed: u64,
+    hinted: bool,
 ) -> Vec<FrameResult> {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     samples
@@ -143,7 +159,8 @@ pub fn run(
             let t0 = Instant::now();
             let pair = renderer.render(&s.scene, &Pose::identity(), &mut rng);
             let t1 = Instant::now();
-            let out = pipeline.estimate(&pair.left, &pair.right, None, seed ^ i as u64);
+            let hint = hinted.then(|| jaw_hint(s));
+            let out = pipeline.estimate(&pair.left, &pair.right, hint.as_ref(), seed ^ i as u64);
             let total = t1.elapsed();
             let (error, failure, times) = match out {
                 Ok(o) => (

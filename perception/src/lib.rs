@@ -7,7 +7,10 @@ pub mod pipeline;
 pub mod segment;
 
 pub use disparity::{DisparityMap, MaskRowMatcher, SemiGlobalMatcher, StereoMatcher};
-pub use pipeline::{NeedlePipeline, PipelineEstimator, PipelineOutput, PipelineParams, PoseError};
+pub use pipeline::{
+    JawHint, NeedleEnd, NeedlePipeline, PipelineEstimator, PipelineOutput, PipelineParams,
+    PoseError,
+};
 pub use segment::{ColorSegmenter, Masks, Rect, Segmenter};
 
 use serde::{Deserialize, Serialize};

@@ -50,6 +50,9 @@ pub struct PipelineParams {
     pub min_thread_px: usize,
     /// The swage end must have at least this many times the other end's thread pixels.
     pub swage_ratio: f64,
+    /// A jaw hint decides which end is which only if the jaw is this much nearer one end of
+    /// the arc, rad.
+    pub jaw_margin_rad: f64,
     /// Estimates less confident than this are refused.
     pub min_confidence: f64,
 }
@@ -71,6 +74,7 @@ impl Default for PipelineParams {
             taper_difference: 0.25,
             min_thread_px: 4,
             swage_ratio: 2.0,
+            jaw_margin_rad: 30f64.to_radians(),
             min_confidence: 0.5,
         }
     }
@@ -114,6 +118,27 @@ pub struct Diagnostics {
     pub taper: [Option<f64>; 2],
     /// Stage times.
     pub times: StageTimes,
+}
+
+/// Which end of the needle a jaw holds it nearer to.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum NeedleEnd {
+    /// The sharp end (the left jaw after a handover).
+    Tip,
+    /// The thread end (the right jaw's grasp for insertion).
+    Swage,
+}
+
+/// What the robot knows about where the needle is: the jaw holding it. The pipeline crops
+/// both views around the jaw's projection and takes the needle end nearer the jaw to be
+/// `end`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct JawHint {
+    /// The holding jaw's tool-tip position, robot frame, m.
+    pub jaw: Point,
+    /// The end it holds the needle nearer to.
+    pub end: NeedleEnd,
 }
 
 /// The stereo needle pipeline.
@@ -165,17 +190,42 @@ impl NeedlePipeline {
         })
     }
 
-    /// Where the needle is in a stereo pair, searched within `hint` (left- and right-image
-    /// regions, e.g. around the holding jaw's projection) or the whole frames. `seed` fixes
-    /// RANSAC's draws.
+    /// Where the needle is in a stereo pair: searched over the whole frames, or only around
+    /// the holding jaw's projection if `hint` gives the jaw. `seed` fixes RANSAC's draws.
     pub fn estimate(
         &self,
         left: &stitch_robot::RgbImage,
         right: &stitch_robot::RgbImage,
-        hint: Option<[Rect; 2]>,
+        hint: Option<&JawHint>,
         seed: u64,
     ) -> Result<PipelineOutput, PerceptionError> {
-        self.run(left, right, hint, seed)
+        let rois = hint.and_then(|h| self.jaw_rois(&h.jaw));
+        self.run(left, right, rois, hint, seed)
+    }
+
+    /// Both views' regions within which a needle held by a jaw at `jaw` must appear: the
+    /// projection of a ball of two needle radii and a margin around it.
+    pub fn jaw_rois(&self, jaw: &Point) -> Option<[Rect; 2]> {
+        let c = &self.calibration;
+        let q = c.camera_to_robot.inverse() * jaw;
+        let reach = 2.0 * self.needle.radius_m + 0.004;
+        if q.z <= reach + 0.01 {
+            return None;
+        }
+        let rad = c.fx * reach / (q.z - reach);
+        let rect = |shift: f64| {
+            let u = c.fx * (q.x - shift) / q.z + c.cx;
+            let v = c.fy * q.y / q.z + c.cy;
+            let clip = |x: f64, hi: u32| x.clamp(0.0, f64::from(hi)) as u32;
+            Rect {
+                x0: clip(u - rad, c.width),
+                y0: clip(v - rad, c.height),
+                x1: clip(u + rad, c.width),
+                y1: clip(v + rad, c.height),
+            }
+        };
+        let rois = [rect(0.0), rect(c.baseline_m)];
+        (!rois[0].is_empty() && !rois[1].is_empty()).then_some(rois)
     }
 
     /// Disparity over the needle's region only (stages 1–2), for `stitch perceive disparity`.
@@ -240,17 +290,22 @@ impl NeedlePipeline {
             view: "right".into(),
         })?;
         let [cmin, cmax] = self.calibrated_range();
+        // The two regions frame the same needle: their left edges' offset and their right
+        // edges' offset are disparities of its extreme points; the needle's own depth spread
+        // is within the margin of them.
         let m = self.params.disparity_margin_px as i64;
-        let lo = i64::from(lm.roi.x0) - i64::from(rm.roi.x1) - m;
-        let hi = i64::from(lm.roi.x1) - i64::from(rm.roi.x0) + m;
+        let a = i64::from(lm.roi.x0) - i64::from(rm.roi.x0);
+        let b = i64::from(lm.roi.x1) - i64::from(rm.roi.x1);
+        let lo = a.min(b) - m;
+        let hi = a.max(b) + m;
         let lo = lo.max(i64::from(cmin)).max(0) as u32;
         let hi = hi.min(i64::from(cmax));
         if hi < i64::from(lo) {
             return Err(PerceptionError::NoMask {
                 view: format!(
                     "both (the two views' needles are {}–{} pixels apart, outside the calibrated disparity range {cmin}–{cmax})",
-                    i64::from(lm.roi.x0) - i64::from(rm.roi.x1),
-                    i64::from(lm.roi.x1) - i64::from(rm.roi.x0)
+                    a.min(b),
+                    a.max(b)
                 ),
             });
         }
@@ -261,7 +316,8 @@ impl NeedlePipeline {
         &self,
         left: &stitch_robot::RgbImage,
         right: &stitch_robot::RgbImage,
-        hint: Option<[Rect; 2]>,
+        rois: Option<[Rect; 2]>,
+        jaw: Option<&JawHint>,
         seed: u64,
     ) -> Result<PipelineOutput, PerceptionError> {
         let c = &self.calibration;
@@ -269,7 +325,7 @@ impl NeedlePipeline {
         check_image(left, c.width, c.height, "left")?;
         check_image(right, c.width, c.height, "right")?;
         let t0 = Instant::now();
-        let (lm, rm, range) = self.masks(left, right, hint)?;
+        let (lm, rm, range) = self.masks(left, right, rois)?;
         let t1 = Instant::now();
         let disp = self.matcher.disparity(&StereoInput {
             left,
@@ -398,7 +454,25 @@ impl NeedlePipeline {
             _ => 0,
         };
         let thread_score = 2 * (i32::from(by_thread(1)) - i32::from(by_thread(0)));
-        let score = taper_score + thread_score;
+        // A known jaw decides: the end it holds the needle nearer to (if clearly nearer).
+        let jaw_score = jaw.map_or(0, |h| {
+            let d = h.jaw - circle.center;
+            let a = d.dot(&e2).atan2(d.dot(&e1));
+            let gap = |b: f64| (a - b + PI).rem_euclid(2.0 * PI) - PI;
+            let (to_lo, to_hi) = (gap(arc.start).abs(), gap(arc.start + arc.extent).abs());
+            if (to_lo - to_hi).abs() < p.jaw_margin_rad {
+                0
+            } else {
+                let lo_nearer = to_lo < to_hi;
+                let lo_is_tip = lo_nearer == (h.end == NeedleEnd::Tip);
+                if lo_is_tip { 8 } else { -8 }
+            }
+        });
+        let score = if jaw_score != 0 {
+            jaw_score
+        } else {
+            taper_score + thread_score
+        };
         if score.abs() < 2 {
             return Err(PerceptionError::AmbiguousEndpoints {
                 why: format!(
@@ -417,12 +491,18 @@ impl NeedlePipeline {
         // its thickness marked. The swage's rounded cap reaches past its centre line.
         let swage_cap = SWAGE_RADIUS_SCALE * self.needle.wire_diameter_m / 2.0 / r;
         let (lo_obs, hi_obs) = (arc.start, arc.start + arc.extent);
-        let tip_seen = if tip_is_lo { tip_like[0] } else { tip_like[1] };
-        let (tip_angle, swage_angle) = match (full || !tip_seen, tip_is_lo) {
-            (true, true) => (hi_obs - swage_cap - PI, hi_obs - swage_cap),
-            (true, false) => (lo_obs + swage_cap + PI, lo_obs + swage_cap),
-            (false, true) => (lo_obs, lo_obs + PI),
-            (false, false) => (hi_obs, hi_obs - PI),
+        let (tip_i, swage_i) = if tip_is_lo { (0, 1) } else { (1, 0) };
+        let obs = [lo_obs, hi_obs];
+        // Towards the needle's middle from each observed end.
+        let inward = [1.0, -1.0];
+        let tip_seen = tip_like[tip_i];
+        let (tip_angle, swage_angle) = if full || !tip_seen {
+            // Both ends seen, or the tip's end is not: anchor on the swage.
+            let s = obs[swage_i] + inward[swage_i] * swage_cap;
+            (s + inward[swage_i] * PI, s)
+        } else {
+            let t = obs[tip_i];
+            (t, t + inward[tip_i] * PI)
         };
         // Tip to swage runs counter-clockwise about the needle's +z.
         let z = if swage_angle > tip_angle {

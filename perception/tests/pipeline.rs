@@ -24,7 +24,7 @@ fn rendered_needles_are_found_within_a_millimetre_or_refused() {
         MockDvrk::new(&SceneConfig::default(), Streams::new(1), SimClock::new()).expect("world");
     let samples = evaluate::dataset(60, 7, Needle::default(), &world.phantom_view());
     let p = NeedlePipeline::classical(r.calibration().clone(), Needle::default()).expect("p");
-    let results = evaluate::run(&p, &r, &samples, 7);
+    let results = evaluate::run(&p, &r, &samples, 7, false);
     let a = accuracy(&results);
     // On 500 frames (`stitch bench perception`): 86 % within 1 mm and 5°, 99.2 % within
     // 3 mm or refused. Sixty frames must show the same picture.
@@ -32,7 +32,7 @@ fn rendered_needles_are_found_within_a_millimetre_or_refused() {
     assert!(a.wrong <= 1, "{a:?}");
     assert!(a.endpoint_mm[0] < 0.5 && a.normal_deg[0] < 1.5, "{a:?}");
     // The same seed, the same results.
-    let again = evaluate::run(&p, &r, &samples, 7);
+    let again = evaluate::run(&p, &r, &samples, 7, false);
     let errs = |v: &[evaluate::FrameResult]| -> Vec<_> {
         v.iter().map(|f| (f.error, f.failure.clone())).collect()
     };

@@ -247,8 +247,9 @@ struct Background {
     depth: Vec<f32>,
 }
 
-/// Noise table entries; a power of two, larger than any image's byte count modulo wrap.
-const NOISE_TABLE: usize = 1 << 20;
+/// Noise table entries beyond an image's byte count: each frame reads a stretch starting at
+/// a random offset below this.
+const NOISE_OFFSETS: usize = 1 << 20;
 
 /// The stereo renderer. Cheap to clone (the background is shared).
 #[derive(Clone, Debug)]
@@ -290,7 +291,8 @@ impl StereoRenderer {
         // random offset each frame.
         let mut rng = ChaCha8Rng::seed_from_u64(0x0057_17c4);
         let sigma = config.noise_sigma;
-        let noise = (0..NOISE_TABLE)
+        let bytes = config.width as usize * config.height as usize * 3;
+        let noise = (0..bytes + NOISE_OFFSETS)
             .map(|_| {
                 let g: f64 = (0..4).map(|_| rng.random::<f64>()).sum::<f64>() - 2.0;
                 // Sum of 4 uniforms: variance 1/3.
@@ -324,8 +326,8 @@ impl StereoRenderer {
         let gain = 1.0 + self.config.lighting_variation * (2.0 * rng.random::<f64>() - 1.0);
         let tubes = tubes(scene, &robot_to_camera);
         let offsets = [
-            rng.random_range(0..NOISE_TABLE),
-            rng.random_range(0..NOISE_TABLE),
+            rng.random_range(0..NOISE_OFFSETS),
+            rng.random_range(0..NOISE_OFFSETS),
         ];
         let [(left, left_labels), (right, right_labels)] = [0usize, 1].map(|i| {
             let shift = if i == 0 { 0.0 } else { self.config.baseline_m };
@@ -353,7 +355,8 @@ impl StereoRenderer {
         let (w, h) = (self.config.width as usize, self.config.height as usize);
         let bg = &self.backgrounds[view];
         let mut rgb: Vec<f32> = Vec::new();
-        let mut depth = bg.depth.clone();
+        // Depth of what is drawn, per touched pixel (the background's elsewhere).
+        let mut drawn_depth: Vec<f32> = Vec::new();
         let mut labels = vec![Label::Background as u8; w * h];
         // Objects are drawn into a sparse float layer over the background: only the pixels
         // they touch are converted.
@@ -403,7 +406,13 @@ impl StereoRenderer {
                     }
                     let z = a.z + (b.z - a.z) * t;
                     let i = y * w + x;
-                    if z >= depth[i] {
+                    let slot = layer_index[i];
+                    let nearest = if slot == u32::MAX {
+                        bg.depth[i]
+                    } else {
+                        drawn_depth[slot as usize]
+                    };
+                    if z >= nearest {
                         continue;
                     }
                     // Shade a tube: the surface normal from the offset across it.
@@ -421,22 +430,23 @@ impl StereoRenderer {
                         Material::Thread => THREAD.map(|c| c * (0.75 + 0.35 * diffuse)),
                         Material::Tool => TOOL.map(|c| c * (0.8 + 0.4 * diffuse)),
                     };
-                    let k = if layer_index[i] == u32::MAX {
+                    let k = if slot == u32::MAX {
                         let k = touched.len() as u32;
                         layer_index[i] = k;
                         touched.push(i as u32);
+                        drawn_depth.push(bg.depth[i]);
                         let o = i * 3;
                         rgb.extend(bg.rgb[o..o + 3].iter().map(|&c| f32::from(c)));
                         k
                     } else {
-                        layer_index[i]
+                        slot
                     } as usize;
                     for c in 0..3 {
                         let old = rgb[k * 3 + c];
                         rgb[k * 3 + c] = old + (color[c] - old) * coverage;
                     }
                     if coverage >= 0.5 {
-                        depth[i] = z;
+                        drawn_depth[k] = z;
                         labels[i] = tube.material.label() as u8;
                     }
                 }
@@ -450,13 +460,13 @@ impl StereoRenderer {
                 out[o + c] = rgb[k * 3 + c].round().clamp(0.0, 255.0) as u8;
             }
         }
-        let g = (gain * 256.0) as i32;
-        let noise = &self.noise[..];
-        let mut n = noise_offset;
-        for v in out.iter_mut() {
-            let x = ((i32::from(*v) * g) >> 8) + i32::from(noise[n]);
-            *v = x.clamp(0, 255) as u8;
-            n = (n + 1) & (NOISE_TABLE - 1);
+        // Gain through a table, then noise from one contiguous stretch of the noise table (a
+        // loop the compiler vectorises).
+        let lut: [i16; 256] =
+            std::array::from_fn(|v| ((v as f32 * gain).round()).clamp(0.0, 255.0) as i16);
+        let noise = &self.noise[noise_offset..noise_offset + out.len()];
+        for (v, &n) in out.iter_mut().zip(noise) {
+            *v = (lut[*v as usize] + i16::from(n)).clamp(0, 255) as u8;
         }
         (
             RgbImage {
@@ -571,8 +581,13 @@ fn tubes(scene: &SceneView, robot_to_camera: &Pose) -> Vec<Tube> {
         // The wrist and the shaft continue the tool's axis away from the tip.
         let back = p * Point::new(0.0, 0.0, -crate::JAW_LENGTH_M - 0.006);
         tube(&wrist, &back, [0.0025; 2], Material::Tool);
-        let shaft = p * Point::new(0.0, 0.0, -crate::JAW_LENGTH_M - 0.05);
-        tube(&back, &shaft, [0.0042; 2], Material::Tool);
+        // In pieces, so each piece's bounding box hugs it.
+        for k in 0..8 {
+            let z = |k: f64| -crate::JAW_LENGTH_M - 0.006 - 0.044 * k / 8.0;
+            let a = p * Point::new(0.0, 0.0, z(f64::from(k)));
+            let b = p * Point::new(0.0, 0.0, z(f64::from(k + 1)));
+            tube(&a, &b, [0.0042; 2], Material::Tool);
+        }
     }
     out.sort_by(|a, b| {
         let za = a.a.z + a.b.z;
