@@ -361,33 +361,42 @@ impl StereoRenderer {
         // Objects are drawn into a sparse float layer over the background: only the pixels
         // they touch are converted.
         let mut touched: Vec<u32> = Vec::new();
-        let mut layer_index = vec![u32::MAX; 0];
-        if !tubes.is_empty() {
-            layer_index = vec![u32::MAX; w * h];
-        }
         let f = self.config.focal_px as f32;
         let (cx, cy) = (w as f32 / 2.0, h as f32 / 2.0);
         let soft = self.config.blur_px.max(0.5) as f32;
         let light = Vector3::new(-0.3f32, -0.6, -1.0).normalize();
         let toward_eye = Vector3::new(0.0f32, 0.0, -1.0);
         let half = (light + toward_eye).normalize();
-        for tube in tubes {
-            let a = tube.a - Vector3::new(shift_m as f32, 0.0, 0.0);
-            let b = tube.b - Vector3::new(shift_m as f32, 0.0, 0.0);
-            if a.z < 0.01 || b.z < 0.01 {
-                continue;
-            }
-            let pa = Vector2::new(f * a.x / a.z + cx, f * a.y / a.z + cy);
-            let pb = Vector2::new(f * b.x / b.z + cx, f * b.y / b.z + cy);
-            let (ra, rb) = (f * tube.radius[0] / a.z, f * tube.radius[1] / b.z);
-            let reach = ra.max(rb) + soft;
-            let x0 = (pa.x.min(pb.x) - reach).floor().max(0.0) as usize;
-            let x1 = ((pa.x.max(pb.x) + reach).ceil() as usize).min(w);
-            let y0 = (pa.y.min(pb.y) - reach).floor().max(0.0) as usize;
-            let y1 = ((pa.y.max(pb.y) + reach).ceil() as usize).min(h);
-            if pa.x.max(pb.x) + reach < 0.0 || pa.y.max(pb.y) + reach < 0.0 {
-                continue;
-            }
+        // Project every tube first: the union of their boxes bounds the scratch index.
+        let projected: Vec<_> = tubes
+            .iter()
+            .filter_map(|tube| {
+                let a = tube.a - Vector3::new(shift_m as f32, 0.0, 0.0);
+                let b = tube.b - Vector3::new(shift_m as f32, 0.0, 0.0);
+                if a.z < 0.01 || b.z < 0.01 {
+                    return None;
+                }
+                let pa = Vector2::new(f * a.x / a.z + cx, f * a.y / a.z + cy);
+                let pb = Vector2::new(f * b.x / b.z + cx, f * b.y / b.z + cy);
+                let (ra, rb) = (f * tube.radius[0] / a.z, f * tube.radius[1] / b.z);
+                let reach = ra.max(rb) + soft;
+                if pa.x.max(pb.x) + reach < 0.0 || pa.y.max(pb.y) + reach < 0.0 {
+                    return None;
+                }
+                let x0 = (pa.x.min(pb.x) - reach).floor().max(0.0) as usize;
+                let x1 = ((pa.x.max(pb.x) + reach).ceil() as usize).min(w);
+                let y0 = (pa.y.min(pb.y) - reach).floor().max(0.0) as usize;
+                let y1 = ((pa.y.max(pb.y) + reach).ceil() as usize).min(h);
+                (x0 < x1 && y0 < y1).then_some((tube, a, b, pa, pb, ra, rb, [x0, y0, x1, y1]))
+            })
+            .collect();
+        let bx0 = projected.iter().map(|t| t.7[0]).min().unwrap_or(0);
+        let by0 = projected.iter().map(|t| t.7[1]).min().unwrap_or(0);
+        let bx1 = projected.iter().map(|t| t.7[2]).max().unwrap_or(0);
+        let by1 = projected.iter().map(|t| t.7[3]).max().unwrap_or(0);
+        let bw = bx1.saturating_sub(bx0);
+        let mut layer_index = vec![u32::MAX; bw * by1.saturating_sub(by0)];
+        for &(tube, a, b, pa, pb, ra, rb, [x0, y0, x1, y1]) in &projected {
             let ab = pb - pa;
             let len2 = ab.norm_squared().max(1e-6);
             let along = ab / len2.sqrt();
@@ -398,15 +407,20 @@ impl StereoRenderer {
                     let t = ((p - pa).dot(&ab) / len2).clamp(0.0, 1.0);
                     let q = pa + ab * t;
                     let d = p - q;
-                    let dist = d.norm();
                     let r = ra + (rb - ra) * t;
+                    let d2 = d.norm_squared();
+                    if d2 >= (r + 0.5 * soft) * (r + 0.5 * soft) {
+                        continue;
+                    }
+                    let dist = d2.sqrt();
                     let coverage = (0.5 + (r - dist) / soft).clamp(0.0, 1.0);
                     if coverage <= 0.0 {
                         continue;
                     }
                     let z = a.z + (b.z - a.z) * t;
                     let i = y * w + x;
-                    let slot = layer_index[i];
+                    let li = (y - by0) * bw + (x - bx0);
+                    let slot = layer_index[li];
                     let nearest = if slot == u32::MAX {
                         bg.depth[i]
                     } else {
@@ -415,11 +429,11 @@ impl StereoRenderer {
                     if z >= nearest {
                         continue;
                     }
-                    // Shade a tube: the surface normal from the offset across it.
+                    // Shade a tube: the surface normal from the offset across it (unit: `across`
+                    // and the view direction are orthogonal unit vectors).
                     let s = (d.dot(&across) / r.max(0.5)).clamp(-1.0, 1.0);
-                    let normal = (Vector3::new(across.x * s, across.y * s, 0.0)
-                        + toward_eye * (1.0 - s * s).max(0.0).sqrt())
-                    .normalize();
+                    let normal = Vector3::new(across.x * s, across.y * s, 0.0)
+                        + toward_eye * (1.0 - s * s).max(0.0).sqrt();
                     let diffuse = normal.dot(&-light).max(0.0);
                     let color = match tube.material {
                         Material::Metal => {
@@ -432,7 +446,7 @@ impl StereoRenderer {
                     };
                     let k = if slot == u32::MAX {
                         let k = touched.len() as u32;
-                        layer_index[i] = k;
+                        layer_index[li] = k;
                         touched.push(i as u32);
                         drawn_depth.push(bg.depth[i]);
                         let o = i * 3;
@@ -453,20 +467,27 @@ impl StereoRenderer {
             }
         }
         // Compose: background everywhere, the object layer where drawn; gain and noise.
-        let mut out = bg.rgb.clone();
+        // Gain in 1/128ths (at most 1.5 × 128 × 255 fits in u16), then noise from one
+        // contiguous stretch of the table, in one pass that builds the image (a loop the
+        // compiler vectorises); then the drawn pixels, likewise.
+        let g = (gain * 128.0).round().clamp(0.0, 192.0) as u16;
+        let noise = &self.noise[noise_offset..noise_offset + bg.rgb.len()];
+        let expose = |v: u8, n: i8| {
+            let x = ((u16::from(v) * g) >> 7) as i16 + i16::from(n);
+            x.clamp(0, 255) as u8
+        };
+        let mut out: Vec<u8> = bg
+            .rgb
+            .iter()
+            .zip(noise)
+            .map(|(&v, &n)| expose(v, n))
+            .collect();
         for (k, &i) in touched.iter().enumerate() {
             let o = i as usize * 3;
             for c in 0..3 {
-                out[o + c] = rgb[k * 3 + c].round().clamp(0.0, 255.0) as u8;
+                let v = rgb[k * 3 + c].round().clamp(0.0, 255.0) as u8;
+                out[o + c] = expose(v, noise[o + c]);
             }
-        }
-        // Gain through a table, then noise from one contiguous stretch of the noise table (a
-        // loop the compiler vectorises).
-        let lut: [i16; 256] =
-            std::array::from_fn(|v| ((v as f32 * gain).round()).clamp(0.0, 255.0) as i16);
-        let noise = &self.noise[noise_offset..noise_offset + out.len()];
-        for (v, &n) in out.iter_mut().zip(noise) {
-            *v = (lut[*v as usize] + i16::from(n)).clamp(0, 255) as u8;
         }
         (
             RgbImage {
