@@ -102,6 +102,16 @@ pub enum PerceptionError {
 pub trait NeedleEstimator: Send {
     /// One estimate from the current view.
     fn estimate_needle(&mut self) -> Result<NeedleEstimate, PerceptionError>;
+
+    /// One estimate, knowing which jaw holds the needle and where (estimators that can use
+    /// it crop around the jaw and tell the ends apart by it; the default ignores it).
+    fn estimate_needle_held(
+        &mut self,
+        held: Option<&JawHint>,
+    ) -> Result<NeedleEstimate, PerceptionError> {
+        let _ = held;
+        self.estimate_needle()
+    }
 }
 
 /// The mock dVRK's perception model behind the estimator trait: the true needle pose plus

@@ -681,6 +681,13 @@ impl<C: StereoCamera + std::fmt::Debug> PipelineEstimator<C> {
 
 impl<C: StereoCamera + std::fmt::Debug> NeedleEstimator for PipelineEstimator<C> {
     fn estimate_needle(&mut self) -> Result<NeedleEstimate, PerceptionError> {
+        self.estimate_needle_held(None)
+    }
+
+    fn estimate_needle_held(
+        &mut self,
+        held: Option<&JawHint>,
+    ) -> Result<NeedleEstimate, PerceptionError> {
         let StereoFrame { stamp, left, right } =
             self.camera.capture().map_err(|e| PerceptionError::Camera {
                 message: e.to_string(),
@@ -690,7 +697,7 @@ impl<C: StereoCamera + std::fmt::Debug> NeedleEstimator for PipelineEstimator<C>
             .seed
             .wrapping_mul(0x9E37_79B9)
             .wrapping_add(self.estimates);
-        let out = self.pipeline.estimate(&left, &right, None, seed)?;
+        let out = self.pipeline.estimate(&left, &right, held, seed)?;
         Ok(NeedleEstimate {
             pose: out.pose,
             confidence: out.confidence,

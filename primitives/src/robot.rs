@@ -15,7 +15,7 @@ use crate::{
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use std::sync::Arc;
-use stitch_perception::{NeedleEstimate, NeedleEstimator};
+use stitch_perception::{JawHint, NeedleEnd, NeedleEstimate, NeedleEstimator};
 use stitch_robot::nalgebra::{Rotation3, Translation3, Unit, UnitQuaternion};
 use stitch_robot::{Arm, Jaw, MoveHandle, Needle, Point, Pose, RobotError, Vector, WoundPoint};
 
@@ -131,6 +131,17 @@ fn fault(e: RobotError) -> Failure {
         measured: Measurements::default(),
     }
 }
+
+/// Which arm, for perception hints.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Hand {
+    Right,
+    Left,
+}
+
+/// The right jaw drives the needle holding it near the swage (the paper's grasp for
+/// insertion, and where the handover puts it back).
+const RIGHT_AT_SWAGE: Option<(Hand, NeedleEnd)> = Some((Hand::Right, NeedleEnd::Swage));
 
 fn failed(kind: FailureKind) -> Failure {
     Failure {
@@ -257,10 +268,21 @@ impl RobotPrimitives {
         &self.rig
     }
 
-    /// A needle estimate, waiting up to [`ESTIMATE_TRIES`] estimator cycles for one.
-    fn estimate(&mut self) -> Step<NeedleEstimate> {
+    /// A needle estimate, waiting up to [`ESTIMATE_TRIES`] estimator cycles for one; `held`
+    /// says which arm holds the needle nearer which end, if one does.
+    fn estimate(&mut self, held: Option<(Hand, NeedleEnd)>) -> Step<NeedleEstimate> {
+        let hint = held.and_then(|(hand, end)| {
+            let arm = match hand {
+                Hand::Right => &self.rig.right,
+                Hand::Left => &self.rig.left,
+            };
+            arm.measured_cp().ok().map(|p| JawHint {
+                jaw: Point::from(p.translation.vector),
+                end,
+            })
+        });
         for _ in 0..ESTIMATE_TRIES {
-            if let Ok(e) = self.rig.estimator.estimate_needle() {
+            if let Ok(e) = self.rig.estimator.estimate_needle_held(hint.as_ref()) {
                 return Ok(e);
             }
         }
@@ -285,7 +307,7 @@ impl RobotPrimitives {
         let tool = self.rig.right.measured_cp().map_err(fault)?;
         let grasp = match self.corrected_grasp.take() {
             Some(g) => g,
-            None => tool.inverse() * self.estimate()?.pose,
+            None => tool.inverse() * self.estimate(RIGHT_AT_SWAGE)?.pose,
         };
         let waypoints = insertion_waypoints(&self.rig.needle, &grasp, point, p);
         Self::moves(&self.rig.right, &waypoints[..1])?;
@@ -337,7 +359,8 @@ impl RobotPrimitives {
     }
 
     fn extract(&mut self, p: &ExtractParams) -> Step<Measurements> {
-        let before = self.estimate()?;
+        // The needle is in the tissue, held by neither jaw.
+        let before = self.estimate(None)?;
         let (center, normal, tip, swage) = before.features(&self.rig.needle);
         let left = self.rig.left.measured_cp().map_err(fault)?;
         let from = Point::from(left.translation.vector);
@@ -367,7 +390,14 @@ impl RobotPrimitives {
         let pull = (away + Vector::z()).normalize() * p.pull_m;
         Self::moves(&self.rig.left, &[shifted(&last, pull)])?;
         // If no estimate comes, the left jaw keeps whatever it holds: the needle may be out.
-        let after = self.estimate()?;
+        let after = self.estimate(Some((
+            Hand::Left,
+            if is_tip {
+                NeedleEnd::Tip
+            } else {
+                NeedleEnd::Swage
+            },
+        )))?;
         let (_, _, tip2, swage2) = after.features(&self.rig.needle);
         let travel = if is_tip {
             (tip2 - tip).norm()
@@ -426,7 +456,7 @@ impl RobotPrimitives {
     }
 
     fn handover(&mut self, attempt: u32, p: &HandoverParams) -> Step<Measurements> {
-        let before = self.estimate()?;
+        let before = self.estimate(Some((Hand::Left, NeedleEnd::Tip)))?;
         let (_, n0, tip, swage) = before.features(&self.rig.needle);
         let left = Point::from(
             self.rig
@@ -477,7 +507,7 @@ impl RobotPrimitives {
         // Tug: turn the right driver a little about a horizontal axis across its approach.
         let tug = rotated_about(&at, &target, &Vector::z().cross(&h), p.tug_rad);
         Self::moves(&self.rig.right, &[tug])?;
-        let after = self.estimate()?;
+        let after = self.estimate(RIGHT_AT_SWAGE)?;
         let n1 = after.features(&self.rig.needle).1;
         let change = n0.angle(&n1);
         let measured = Measurements {
@@ -504,14 +534,18 @@ impl RobotPrimitives {
 
     fn correct(&mut self, p: &CorrectParams) -> Step<Measurements> {
         let tool = self.rig.right.measured_cp().map_err(fault)?;
-        let first = self.estimate()?;
+        let first = self.estimate(RIGHT_AT_SWAGE)?;
         let center = first.pose * Point::origin();
         let to_corner = shifted(&tool, self.rig.layout.correction_point - center);
         Self::moves(&self.rig.right, &[to_corner])?;
         // Average the samples: positions by mean, rotations by the normalised quaternion sum.
+        let hint = self.rig.right.measured_cp().ok().map(|p| JawHint {
+            jaw: Point::from(p.translation.vector),
+            end: NeedleEnd::Swage,
+        });
         let mut grasps = Vec::new();
         for _ in 0..p.samples.max(1) {
-            if let Ok(e) = self.rig.estimator.estimate_needle() {
+            if let Ok(e) = self.rig.estimator.estimate_needle_held(hint.as_ref()) {
                 grasps.push(to_corner.inverse() * e.pose);
             }
         }
@@ -541,7 +575,7 @@ impl RobotPrimitives {
         // all there is.
         if let StepKind::EstimateNeedle(p) = kind {
             for _ in 0..p.samples.max(1) {
-                self.estimate()?;
+                self.estimate(None)?;
             }
         }
         match self.problem() {
