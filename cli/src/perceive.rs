@@ -84,8 +84,8 @@ pub enum BenchCommand {
         /// directory, one file per matcher and mode.
         #[arg(long)]
         details: Option<PathBuf>,
-        /// Matchers to measure (the default pipeline uses mask-row).
-        #[arg(long, value_enum, value_delimiter = ',', default_values_t = [MatcherKind::MaskRow, MatcherKind::Sgm])]
+        /// Matchers to measure (the default pipeline uses sgm).
+        #[arg(long, value_enum, value_delimiter = ',', default_values_t = [MatcherKind::Sgm, MatcherKind::MaskRow])]
         matchers: Vec<MatcherKind>,
     },
 }
@@ -93,16 +93,16 @@ pub enum BenchCommand {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum, Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum MatcherKind {
-    /// Row-run matching of the needle masks (the default).
+    /// Row-run matching of the needle masks (fastest).
     MaskRow,
-    /// Census semi-global matching.
+    /// Census semi-global matching around the needle mask (the default).
     Sgm,
 }
 
 #[derive(Debug, clap::Args)]
 pub struct PipelineOptions {
     /// The disparity matcher.
-    #[arg(long, value_enum, default_value_t = MatcherKind::MaskRow)]
+    #[arg(long, value_enum, default_value_t = MatcherKind::Sgm)]
     matcher: MatcherKind,
     /// Needle radius, mm.
     #[arg(long, default_value_t = 12.0)]

@@ -116,6 +116,10 @@ pub struct FrameResult {
     pub error: Option<PoseError>,
     /// The typed failure, if there was none.
     pub failure: Option<String>,
+    /// The estimate's confidence and the arc it saw, degrees (0 without an estimate).
+    pub confidence: f64,
+    /// See `confidence`.
+    pub arc_deg: f64,
     /// The pipeline's stage times.
     pub times: crate::pipeline::StageTimes,
     /// End to end, including what the stage times do not split out.
@@ -162,17 +166,27 @@ pub fn run(
             let hint = hinted.then(|| jaw_hint(s));
             let out = pipeline.estimate(&pair.left, &pair.right, hint.as_ref(), seed ^ i as u64);
             let total = t1.elapsed();
-            let (error, failure, times) = match out {
+            let (error, failure, times, confidence, arc_deg) = match out {
                 Ok(o) => (
                     Some(PoseError::between(&pipeline.needle, &o.pose, &s.truth)),
                     None,
                     o.diagnostics.times,
+                    o.confidence,
+                    o.diagnostics.arc_rad.to_degrees(),
                 ),
-                Err(e) => (None, Some(failure_kind(&e).to_string()), Default::default()),
+                Err(e) => (
+                    None,
+                    Some(failure_kind(&e).to_string()),
+                    Default::default(),
+                    0.0,
+                    0.0,
+                ),
             };
             FrameResult {
                 error,
                 failure,
+                confidence,
+                arc_deg,
                 times,
                 total,
                 render: t1 - t0,

@@ -24,19 +24,23 @@ fn rendered_needles_are_found_within_a_millimetre_or_refused() {
         MockDvrk::new(&SceneConfig::default(), Streams::new(1), SimClock::new()).expect("world");
     let samples = evaluate::dataset(60, 7, Needle::default(), &world.phantom_view());
     let p = NeedlePipeline::classical(r.calibration().clone(), Needle::default()).expect("p");
-    let results = evaluate::run(&p, &r, &samples, 7, false);
-    let a = accuracy(&results);
-    // On 500 frames (`stitch bench perception`): 86 % within 1 mm and 5°, 99.2 % within
-    // 3 mm or refused. Sixty frames must show the same picture.
-    assert!(a.within_1mm_5deg >= 0.75, "{a:?}");
-    assert!(a.wrong <= 1, "{a:?}");
-    assert!(a.endpoint_mm[0] < 0.5 && a.normal_deg[0] < 1.5, "{a:?}");
+    // With the holding jaw known, on 500 frames (`stitch bench perception`): 96 % within
+    // 1 mm and 5°, none more than 3 mm off. Sixty frames must show the same picture.
+    let held = evaluate::run(&p, &r, &samples, 7, true);
+    let a = accuracy(&held);
+    assert!(a.within_1mm_5deg >= 0.9, "{a:?}");
+    assert_eq!(a.wrong, 0, "{a:?}");
+    assert!(a.endpoint_mm[0] < 0.4 && a.normal_deg[0] < 1.0, "{a:?}");
+    // From full frames alone, tip and swage are sometimes ambiguous (a typed failure).
+    let blind = accuracy(&evaluate::run(&p, &r, &samples, 7, false));
+    assert!(blind.within_1mm_5deg >= 0.75, "{blind:?}");
+    assert!(blind.wrong <= 2, "{blind:?}");
     // The same seed, the same results.
-    let again = evaluate::run(&p, &r, &samples, 7, false);
+    let again = evaluate::run(&p, &r, &samples, 7, true);
     let errs = |v: &[evaluate::FrameResult]| -> Vec<_> {
         v.iter().map(|f| (f.error, f.failure.clone())).collect()
     };
-    assert_eq!(errs(&results), errs(&again));
+    assert_eq!(errs(&held), errs(&again));
 }
 
 #[test]
