@@ -40,7 +40,8 @@ const EXIT_CODES: &str = "Exit codes:
   2  the command line is wrong
   3  the plan is invalid (script, unit, range, order or budget error); nothing ran
   4  the mission failed with one of the paper's error classes (I, E, H, T)
-  5  the mission was aborted by the supervisor";
+  5  the mission was aborted by the supervisor
+  6  perceive: the pipeline gave a typed failure instead of a result";
 
 /// Autonomous suturing missions on the dVRK, under a surgeon's supervision.
 #[derive(Debug, Parser)]
@@ -88,8 +89,9 @@ enum Command {
         /// Which robot executes the plan.
         #[arg(long, value_enum, default_value_t = RobotKind::Mock)]
         robot: RobotKind,
-        /// How the mock estimates the needle pose: its noise model, the truth, or the stereo
-        /// pipeline on rendered pairs.
+        /// How the mock estimates the needle pose: its noise model (the paper's estimator),
+        /// the truth, the stereo pipeline on rendered pairs, or the noise model fitted to that
+        /// pipeline.
         #[arg(long, value_enum, default_value_t = PerceptionKind::Model)]
         perception: PerceptionKind,
         /// The mock's scene, models and faults (TOML; see docs/mock-dvrk.md). Without it,
@@ -144,6 +146,8 @@ enum PerceptionKind {
     Perfect,
     /// The stereo pipeline on pairs rendered from the mock's scene (see docs/perception.md).
     Pipeline,
+    /// The noise model fitted to the stereo pipeline's measured errors (fast).
+    Fitted,
 }
 
 #[derive(Debug, clap::Args)]
@@ -312,6 +316,9 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
                         PerceptionKind::Model => MockPerception::Model(mock.sensing),
                         PerceptionKind::Perfect => MockPerception::Model(SensingConfig::perfect()),
                         PerceptionKind::Pipeline => MockPerception::Pipeline(Box::new(mock.camera)),
+                        PerceptionKind::Fitted => {
+                            MockPerception::Model(SensingConfig::fitted_to_pipeline())
+                        }
                     };
                     run_mock(&loaded, &mock.scene, perception, seed)?
                 }

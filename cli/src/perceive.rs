@@ -9,7 +9,8 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 use stitch_perception::evaluate::{self, Accuracy, FrameResult, percentile};
 use stitch_perception::{
-    MaskRowMatcher, NeedlePipeline, PerceptionError, Rect, SemiGlobalMatcher, StereoMatcher,
+    JawHint, MaskRowMatcher, NeedleEnd, NeedlePipeline, PerceptionError, Rect, SemiGlobalMatcher,
+    StereoMatcher,
 };
 use stitch_robot::nalgebra::{Matrix3, Rotation3, Translation3, UnitQuaternion};
 use stitch_robot::{Needle, Pose, RgbImage, StereoCalibration};
@@ -30,6 +31,13 @@ pub enum PerceiveCommand {
         /// The stereo calibration (TOML; see docs/perception.md).
         #[arg(long)]
         calib: PathBuf,
+        /// The holding jaw's tool-tip position, robot frame, metres: x,y,z. The pipeline
+        /// then searches around it and takes the end nearer it to be --holds.
+        #[arg(long, value_parser = parse_point, allow_hyphen_values = true, requires = "holds")]
+        jaw: Option<[f64; 3]>,
+        /// Which needle end the jaw holds it nearer to.
+        #[arg(long, value_enum, requires = "jaw")]
+        holds: Option<HeldEnd>,
         #[command(flatten)]
         options: PipelineOptions,
     },
@@ -53,7 +61,8 @@ pub enum PerceiveCommand {
         options: PipelineOptions,
     },
     /// Render a pair of the evaluation set (or of the mock's start) to PNG, with its
-    /// calibration (TOML) and truth (JSON): what the other commands read.
+    /// calibration (TOML) and truth (JSON, with the holding jaw for --jaw/--holds): what the
+    /// other commands read.
     Render {
         /// Directory to write left.png, right.png, calib.toml and truth.json into.
         #[arg(long)]
@@ -110,6 +119,28 @@ pub struct PipelineOptions {
     /// Seed of RANSAC's draws.
     #[arg(long, default_value_t = 1)]
     seed: u64,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum HeldEnd {
+    /// Nearer the swage (the right jaw's grasp for insertion).
+    Swage,
+    /// Nearer the tip (the left jaw's after extraction).
+    Tip,
+}
+
+fn parse_point(s: &str) -> Result<[f64; 3], String> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|p| p.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|e| format!("{s:?}: {e}; expected x,y,z in metres"))?;
+    match v[..] {
+        [x, y, z] if v.iter().all(|c| c.is_finite()) => Ok([x, y, z]),
+        _ => Err(format!(
+            "{s:?}: expected three finite numbers x,y,z in metres"
+        )),
+    }
 }
 
 fn parse_rect(s: &str) -> Result<Rect, String> {
@@ -285,13 +316,22 @@ pub fn perceive(command: PerceiveCommand) -> anyhow::Result<u8> {
             left,
             right,
             calib,
+            jaw,
+            holds,
             options,
         } => {
             let c = read_calibration(&calib)?;
             let (l, r) = (read_png(&left)?, read_png(&right)?);
             let p = pipeline(c, &options)?;
+            let hint = jaw.zip(holds).map(|(j, h)| JawHint {
+                jaw: stitch_robot::Point::new(j[0], j[1], j[2]),
+                end: match h {
+                    HeldEnd::Swage => NeedleEnd::Swage,
+                    HeldEnd::Tip => NeedleEnd::Tip,
+                },
+            });
             let mut out = std::io::stdout().lock();
-            match p.estimate(&l, &r, None, options.seed) {
+            match p.estimate(&l, &r, hint.as_ref(), options.seed) {
                 Ok(o) => {
                     let g = p.needle.in_world(&o.pose);
                     let t = o.pose.translation.vector;
@@ -364,14 +404,23 @@ pub fn perceive(command: PerceiveCommand) -> anyhow::Result<u8> {
             std::fs::create_dir_all(&out)
                 .with_context(|| format!("cannot create {}", out.display()))?;
             let (renderer, world) = mock_renderer(seed)?;
-            let scene_and_truth = match sample {
+            let (scene_and_truth, hint) = match sample {
                 Some(k) => {
                     let set =
                         evaluate::dataset(k + 1, seed, Needle::default(), &world.phantom_view());
                     let s = set.into_iter().nth(k).context("no such sample")?;
-                    (s.scene, s.truth)
+                    let hint = evaluate::jaw_hint(&s);
+                    ((s.scene, s.truth), hint)
                 }
-                None => (world.scene_view(), world.needle_truth().pose),
+                None => {
+                    let scene = world.scene_view();
+                    let jaw = stitch_robot::Point::from(scene.tools[0].pose.translation.vector);
+                    let hint = JawHint {
+                        jaw,
+                        end: NeedleEnd::Swage,
+                    };
+                    ((scene, world.needle_truth().pose), hint)
+                }
             };
             let mut rng = Streams::new(seed).rng(stitch_sim::Subsystem::Perception);
             let pair = renderer.render(&scene_and_truth.0, &Pose::identity(), &mut rng);
@@ -388,6 +437,11 @@ pub fn perceive(command: PerceiveCommand) -> anyhow::Result<u8> {
                 "normal": [g.normal.x, g.normal.y, g.normal.z],
                 "tip_m": a(g.tip),
                 "swage_m": a(g.swage),
+                "jaw_m": a(hint.jaw),
+                "jaw_holds": match hint.end {
+                    NeedleEnd::Tip => "tip",
+                    NeedleEnd::Swage => "swage",
+                },
             });
             std::fs::write(
                 out.join("truth.json"),

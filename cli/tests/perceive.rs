@@ -68,6 +68,37 @@ fn a_rendered_pair_on_disk_gives_the_needle_pose_within_a_millimetre() {
     }
     let confidence = est["confidence"].as_f64().expect("confidence");
     assert!((0.5..=1.0).contains(&confidence), "{confidence}");
+    // Knowing the holding jaw (as the robot does) gives the same pose.
+    let jaw = vec3(&truth["jaw_m"]).map(|v| v.to_string()).join(",");
+    let holds = truth["jaw_holds"].as_str().expect("holds");
+    let out = stitch(&[
+        "perceive",
+        "needle",
+        s(&d.join("left.png")),
+        s(&d.join("right.png")),
+        "--calib",
+        s(&calib),
+        "--jaw",
+        &jaw,
+        "--holds",
+        holds,
+    ]);
+    assert_eq!(out.status.code(), Some(0), "{}", text(&out.stderr));
+    let held: serde_json::Value = serde_json::from_slice(&out.stdout).expect("JSON");
+    let e = dist(vec3(&held["tip_m"]), vec3(&truth["tip_m"]));
+    assert!(e < 0.001, "tip off by {e} m with the jaw known");
+    // A jaw without which end it holds is a command-line error.
+    let out = stitch(&[
+        "perceive",
+        "needle",
+        s(&d.join("left.png")),
+        s(&d.join("right.png")),
+        "--calib",
+        s(&calib),
+        "--jaw",
+        "-0.01,0.02,-0.09",
+    ]);
+    assert_eq!(out.status.code(), Some(2), "{}", text(&out.stderr));
 }
 
 #[test]

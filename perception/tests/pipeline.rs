@@ -35,6 +35,26 @@ fn rendered_needles_are_found_within_a_millimetre_or_refused() {
     let blind = accuracy(&evaluate::run(&p, &r, &samples, 7, false));
     assert!(blind.within_1mm_5deg >= 0.75, "{blind:?}");
     assert!(blind.wrong <= 2, "{blind:?}");
+    // The mock's noise model fitted to the pipeline (`--perception fitted`) still describes
+    // it: per-axis σ from the medians (3D: median = 1.54 σ; normal tilt: 1.18 σ), within a
+    // factor of two, and the share of failures within 5 points.
+    let fitted = stitch_sim::SensingConfig::fitted_to_pipeline();
+    let sigma_p = a.center_mm[0] * 1e-3 / 1.54;
+    let sigma_r = a.normal_deg[0].to_radians() / 1.18;
+    let ratio_p = sigma_p / fitted.elsewhere.sigma_position_m;
+    let ratio_r = sigma_r / fitted.elsewhere.sigma_rotation_rad;
+    assert!(
+        (0.5..2.0).contains(&ratio_p),
+        "position σ {sigma_p} vs {fitted:?}"
+    );
+    assert!(
+        (0.5..2.0).contains(&ratio_r),
+        "rotation σ {sigma_r} vs {fitted:?}"
+    );
+    assert!(
+        (a.failures - fitted.elsewhere.p_dropout).abs() < 0.05,
+        "{a:?}"
+    );
     // The same seed, the same results.
     let again = evaluate::run(&p, &r, &samples, 7, true);
     let errs = |v: &[evaluate::FrameResult]| -> Vec<_> {
