@@ -8,8 +8,8 @@ pub mod segment;
 
 pub use disparity::{DisparityMap, MaskRowMatcher, SemiGlobalMatcher, StereoMatcher};
 pub use pipeline::{
-    JawHint, NeedleEnd, NeedlePipeline, PipelineEstimator, PipelineOutput, PipelineParams,
-    PoseError,
+    JawHint, NeedleEnd, NeedleHint, NeedlePipeline, PipelineEstimator, PipelineOutput,
+    PipelineParams, PoseError, TissueHint,
 };
 pub use segment::{ColorSegmenter, Masks, Rect, Segmenter};
 
@@ -103,13 +103,14 @@ pub trait NeedleEstimator: Send {
     /// One estimate from the current view.
     fn estimate_needle(&mut self) -> Result<NeedleEstimate, PerceptionError>;
 
-    /// One estimate, knowing which jaw holds the needle and where (estimators that can use
-    /// it crop around the jaw and tell the ends apart by it; the default ignores it).
-    fn estimate_needle_held(
+    /// One estimate, knowing where the needle should be: which jaw holds it, or which holes
+    /// it is lodged in (estimators that can use it search there and orient by it; the
+    /// default ignores it).
+    fn estimate_needle_with(
         &mut self,
-        held: Option<&JawHint>,
+        hint: Option<&NeedleHint>,
     ) -> Result<NeedleEstimate, PerceptionError> {
-        let _ = held;
+        let _ = hint;
         self.estimate_needle()
     }
 }

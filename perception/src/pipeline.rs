@@ -61,6 +61,10 @@ pub struct PipelineParams {
     /// A jaw hint decides which end is which only if the jaw is this much nearer one end of
     /// the arc, rad.
     pub jaw_margin_rad: f64,
+    /// Least points for a needle in tissue (most of it is hidden).
+    pub min_points_in_tissue: usize,
+    /// Least needle seen past a hole to place its end, in tissue, m.
+    pub min_tip_seen_m: f64,
     /// Estimates less confident than this are refused.
     pub min_confidence: f64,
 }
@@ -85,6 +89,8 @@ impl Default for PipelineParams {
             min_thread_px: 4,
             swage_ratio: 2.0,
             jaw_margin_rad: 30f64.to_radians(),
+            min_points_in_tissue: 15,
+            min_tip_seen_m: 0.002,
             min_confidence: 0.5,
         }
     }
@@ -151,6 +157,31 @@ pub struct JawHint {
     pub end: NeedleEnd,
 }
 
+/// A ball the needle must lie in, robot frame.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Region {
+    center: Point,
+    reach_m: f64,
+}
+
+/// What the robot knows about a needle lodged in tissue: the holes it went through.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TissueHint {
+    /// Where it entered, robot frame, m.
+    pub entry: Point,
+    /// Where it came out, m.
+    pub exit: Point,
+}
+
+/// What the robot knows about where the needle is.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum NeedleHint {
+    /// A jaw holds it.
+    Held(JawHint),
+    /// It is lodged in the tissue through these holes.
+    InTissue(TissueHint),
+}
+
 /// The stereo needle pipeline.
 #[derive(Debug)]
 pub struct NeedlePipeline {
@@ -210,33 +241,17 @@ impl NeedlePipeline {
         hint: Option<&JawHint>,
         seed: u64,
     ) -> Result<PipelineOutput, PerceptionError> {
-        let rois = hint.and_then(|h| self.jaw_rois(&h.jaw));
-        self.run(left, right, rois, hint, seed)
+        let region = hint.map(|h| self.region_near(&h.jaw));
+        self.run(left, right, region, hint, seed)
     }
 
-    /// Both views' regions within which a needle held by a jaw at `jaw` must appear: the
-    /// projection of a ball of two needle radii and a margin around it.
-    pub fn jaw_rois(&self, jaw: &Point) -> Option<[Rect; 2]> {
-        let c = &self.calibration;
-        let q = c.camera_to_robot.inverse() * jaw;
-        let reach = 2.0 * self.needle.radius_m + 0.004;
-        if q.z <= reach + 0.01 {
-            return None;
+    /// Where the needle must be when it is near `point` (a jaw holding it, or the middle of
+    /// the holes it is in): within two radii and a margin.
+    fn region_near(&self, point: &Point) -> Region {
+        Region {
+            center: *point,
+            reach_m: 2.0 * self.needle.radius_m + 0.004,
         }
-        let rad = c.fx * reach / (q.z - reach);
-        let rect = |shift: f64| {
-            let u = c.fx * (q.x - shift) / q.z + c.cx;
-            let v = c.fy * q.y / q.z + c.cy;
-            let clip = |x: f64, hi: u32| x.clamp(0.0, f64::from(hi)) as u32;
-            Rect {
-                x0: clip(u - rad, c.width),
-                y0: clip(v - rad, c.height),
-                x1: clip(u + rad, c.width),
-                y1: clip(v + rad, c.height),
-            }
-        };
-        let rois = [rect(0.0), rect(c.baseline_m)];
-        (!rois[0].is_empty() && !rois[1].is_empty()).then_some(rois)
     }
 
     /// Disparity over the needle's region only (stages 1–2), for `stitch perceive disparity`.
@@ -249,8 +264,7 @@ impl NeedlePipeline {
         let c = &self.calibration;
         check_image(left, c.width, c.height, "left")?;
         check_image(right, c.width, c.height, "right")?;
-        let (lm, rm, range) =
-            self.masks(left, right, roi.map(|r| [r, Rect::full(c.width, c.height)]))?;
+        let (lm, rm, range) = self.masks(left, right, roi, None)?;
         self.matcher.disparity(&StereoInput {
             left,
             right,
@@ -299,6 +313,31 @@ impl NeedlePipeline {
         if lo < hi { [lo, hi] } else { range }
     }
 
+    /// A region's projection in the left view and the disparities its depths give.
+    fn project_region(&self, region: &Region) -> Option<(Rect, [u32; 2])> {
+        let c = &self.calibration;
+        let q = c.camera_to_robot.inverse() * region.center;
+        let reach = region.reach_m;
+        if q.z <= reach + 0.01 {
+            return None;
+        }
+        let rad = c.fx * reach / (q.z - reach);
+        let (u, v) = (c.fx * q.x / q.z + c.cx, c.fy * q.y / q.z + c.cy);
+        let clip = |x: f64, hi: u32| x.clamp(0.0, f64::from(hi)) as u32;
+        let rect = Rect {
+            x0: clip(u - rad, c.width),
+            y0: clip(v - rad, c.height),
+            x1: clip(u + rad, c.width),
+            y1: clip(v + rad, c.height),
+        };
+        let fb = c.fx * c.baseline_m;
+        let range = [
+            (fb / (q.z + reach)).floor() as u32,
+            (fb / (q.z - reach)).ceil() as u32,
+        ];
+        (!rect.is_empty()).then_some((rect, range))
+    }
+
     /// The disparity range the calibration allows: depths `depth_range_m`.
     fn calibrated_range(&self) -> [u32; 2] {
         let c = &self.calibration;
@@ -314,12 +353,47 @@ impl NeedlePipeline {
         &self,
         left: &stitch_robot::RgbImage,
         right: &stitch_robot::RgbImage,
-        hint: Option<[Rect; 2]>,
+        within: Option<Rect>,
+        region: Option<Region>,
     ) -> Result<(Masks, Masks, [u32; 2]), PerceptionError> {
         let c = &self.calibration;
         let full = Rect::full(c.width, c.height);
-        let [hl, hr] = hint.unwrap_or([full, full]);
         let seg = self.segmenter.as_ref();
+        if let Some(region) = region {
+            // Where the needle must be is known: search the left view around its
+            // projection, and the right view only where the same points can appear at the
+            // depths the region allows — no independent search that could find another
+            // part of the needle (or something else) in the right view.
+            let (rect, range) = self
+                .project_region(&region)
+                .ok_or(PerceptionError::NoMask {
+                    view: "left (the expected region is out of view)".into(),
+                })?;
+            let lm = seg
+                .locate(left, rect)
+                .map(|roi| seg.segment(left, roi))
+                .ok_or(PerceptionError::NoMask {
+                    view: "left".into(),
+                })?;
+            let l = lm.roi;
+            let rr = Rect {
+                x0: l.x0.saturating_sub(range[1]),
+                x1: l
+                    .x1
+                    .saturating_sub(range[0])
+                    .max(l.x0.saturating_sub(range[1]) + 1),
+                ..l
+            };
+            let rm = seg.segment(right, rr);
+            if rm.needle_count() == 0 {
+                return Err(PerceptionError::NoMask {
+                    view: "right".into(),
+                });
+            }
+            return Ok((lm, rm, range));
+        }
+        let hl = within.unwrap_or(full);
+        let hr = full;
         let locate_and_segment = |img: &stitch_robot::RgbImage, within: Rect| {
             seg.locate(img, within).map(|roi| seg.segment(img, roi))
         };
@@ -364,7 +438,7 @@ impl NeedlePipeline {
         &self,
         left: &stitch_robot::RgbImage,
         right: &stitch_robot::RgbImage,
-        rois: Option<[Rect; 2]>,
+        region: Option<Region>,
         jaw: Option<&JawHint>,
         seed: u64,
     ) -> Result<PipelineOutput, PerceptionError> {
@@ -372,40 +446,8 @@ impl NeedlePipeline {
         let p = &self.params;
         check_image(left, c.width, c.height, "left")?;
         check_image(right, c.width, c.height, "right")?;
-        let t0 = Instant::now();
-        let (lm, rm, range) = self.masks(left, right, rois)?;
-        let range = self.narrowed(left, right, &lm, &rm, range);
-        let t1 = Instant::now();
-        let disp = self.matcher.disparity(&StereoInput {
-            left,
-            right,
-            left_masks: &lm,
-            right_masks: &rm,
-            min_disparity: range[0],
-            max_disparity: range[1],
-            segmenter: self.segmenter.as_ref(),
-        })?;
-        let t2 = Instant::now();
-        let cloud = point_cloud(&disp, &lm, c, p.max_points);
+        let (lm, cloud, mut diag) = self.cloud(left, right, region)?;
         let t3 = Instant::now();
-        let mut diag = Diagnostics {
-            rois: [lm.roi, rm.roi],
-            disparity_range: range,
-            needle_px: lm.needle_count(),
-            cloud_points: cloud.len(),
-            plane_inliers: 0,
-            circle_inliers: 0,
-            rms_m: 0.0,
-            arc_rad: 0.0,
-            thread_px: [0, 0],
-            taper: [None, None],
-            times: StageTimes {
-                segment: t1 - t0,
-                disparity: t2 - t1,
-                cloud: t3 - t2,
-                fit: Duration::ZERO,
-            },
-        };
         if cloud.len() < p.min_points {
             return Err(PerceptionError::TooFewPoints {
                 found: cloud.len(),
@@ -625,6 +667,232 @@ impl NeedlePipeline {
         Some(near.iter().sum::<f64>() / near.len() as f64 / inner)
     }
 
+    /// Stages 1 to 3: masks, disparity, the cloud in the robot frame; the diagnostics so far.
+    fn cloud(
+        &self,
+        left: &stitch_robot::RgbImage,
+        right: &stitch_robot::RgbImage,
+        region: Option<Region>,
+    ) -> Result<(Masks, Vec<Point>, Diagnostics), PerceptionError> {
+        let c = &self.calibration;
+        let t0 = Instant::now();
+        let (lm, rm, range) = self.masks(left, right, None, region)?;
+        let range = self.narrowed(left, right, &lm, &rm, range);
+        let t1 = Instant::now();
+        let disp = self.matcher.disparity(&StereoInput {
+            left,
+            right,
+            left_masks: &lm,
+            right_masks: &rm,
+            min_disparity: range[0],
+            max_disparity: range[1],
+            segmenter: self.segmenter.as_ref(),
+        })?;
+        let t2 = Instant::now();
+        let cloud = point_cloud(&disp, &lm, c, self.params.max_points);
+        let t3 = Instant::now();
+        let diag = Diagnostics {
+            rois: [lm.roi, rm.roi],
+            disparity_range: range,
+            needle_px: lm.needle_count(),
+            cloud_points: cloud.len(),
+            plane_inliers: 0,
+            circle_inliers: 0,
+            rms_m: 0.0,
+            arc_rad: 0.0,
+            thread_px: [0, 0],
+            taper: [None, None],
+            times: StageTimes {
+                segment: t1 - t0,
+                disparity: t2 - t1,
+                cloud: t3 - t2,
+                fit: Duration::ZERO,
+            },
+        };
+        Ok((lm, cloud, diag))
+    }
+
+    /// The pose of a needle lodged in tissue through known holes: the circle of the needle's
+    /// radius through the entry and exit (one free angle about their chord; the needle
+    /// dips under the tissue between them) that the visible points fit best, refined with
+    /// the holes as soft constraints; the tip is the farthest point seen past the exit.
+    /// Checks and failures as [`Self::estimate`]'s.
+    pub fn estimate_in_tissue(
+        &self,
+        left: &stitch_robot::RgbImage,
+        right: &stitch_robot::RgbImage,
+        holes: &TissueHint,
+        seed: u64,
+    ) -> Result<PipelineOutput, PerceptionError> {
+        let c = &self.calibration;
+        let p = &self.params;
+        check_image(left, c.width, c.height, "left")?;
+        check_image(right, c.width, c.height, "right")?;
+        let (e, x) = (holes.entry, holes.exit);
+        let mid = Point::from((e.coords + x.coords) / 2.0);
+        let region = self.region_near(&mid);
+        let (_, cloud, mut diag) = self.cloud(left, right, Some(region))?;
+        let t3 = Instant::now();
+        if cloud.len() < p.min_points_in_tissue {
+            return Err(PerceptionError::TooFewPoints {
+                found: cloud.len(),
+                needed: p.min_points_in_tissue,
+            });
+        }
+        let r = self.needle.radius_m;
+        let chord = x - e;
+        let half = chord.norm() / 2.0;
+        if !(half > 1e-4 && half < r) {
+            return Err(PerceptionError::Config {
+                message: format!(
+                    "entry and exit {:.1} mm apart: a {:.1} mm needle cannot pass through both",
+                    2.0 * half * 1e3,
+                    r * 1e3
+                ),
+            });
+        }
+        let u = chord / (2.0 * half);
+        let rho = (r * r - half * half).sqrt();
+        let (a, b) = plane_basis(&u);
+        let t = p.ransac.circle_threshold_m;
+        let circle_at = |phi: f64| {
+            let center = mid + (a * phi.cos() + b * phi.sin()) * rho;
+            let normal = (e - center).cross(&(x - center)).normalize();
+            Circle {
+                center,
+                normal,
+                radius: r,
+            }
+        };
+        // First the free fit (the holes are where the plan aimed, up to the insertion's
+        // error of a few millimetres); then, if too little is seen for it, the circle
+        // through the holes that the points fit best, the holes as soft constraints.
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let free = fit::ransac_plane(&cloud, &p.ransac, &mut rng).and_then(|(plane, on)| {
+            let pts: Vec<Point> = on.iter().map(|&i| cloud[i]).collect();
+            fit::ransac_circle(&pts, &plane, r, &p.ransac, &mut rng)
+                .map(|(c, inl)| (c, inl.iter().map(|&i| pts[i]).collect::<Vec<_>>()))
+        });
+        let enough = |n: usize| {
+            n >= p.min_points_in_tissue && n as f64 >= p.min_inlier_share * cloud.len() as f64
+        };
+        let (circle, inliers) = match free {
+            Some((c, inl)) if enough(inl.len()) => (c, inl),
+            _ => {
+                let mut best: Option<(usize, f64, f64)> = None;
+                for k in 0..720 {
+                    let phi = f64::from(k) * PI / 360.0;
+                    let circle = circle_at(phi);
+                    // The needle dips under the tissue between the holes: its centre is
+                    // above them.
+                    if circle.center.z < mid.z {
+                        continue;
+                    }
+                    let (n, sum) = cloud.iter().fold((0usize, 0.0), |(n, sum), q| {
+                        let d = circle.distance(q);
+                        if d <= t { (n + 1, sum + d) } else { (n, sum) }
+                    });
+                    if best.is_none_or(|(bn, bs, _)| n > bn || (n == bn && sum < bs)) {
+                        best = Some((n, sum, phi));
+                    }
+                }
+                let (_, _, phi) = best.ok_or_else(|| PerceptionError::BadFit {
+                    why: "no circle through the holes".into(),
+                })?;
+                let circle = circle_at(phi);
+                let inliers: Vec<Point> = cloud
+                    .iter()
+                    .copied()
+                    .filter(|q| circle.distance(q) <= t)
+                    .collect();
+                if !enough(inliers.len()) {
+                    return Err(PerceptionError::BadFit {
+                        why: format!(
+                            "{} of {} points on the best circle near the holes",
+                            inliers.len(),
+                            cloud.len()
+                        ),
+                    });
+                }
+                let mut with_holes = inliers.clone();
+                for _ in 0..5 {
+                    with_holes.push(e);
+                    with_holes.push(x);
+                }
+                (fit::refine_circle(&with_holes, circle, 8), inliers)
+            }
+        };
+        let share = inliers.len() as f64 / cloud.len() as f64;
+        diag.circle_inliers = inliers.len();
+        diag.rms_m = (inliers
+            .iter()
+            .map(|q| circle.distance(q).powi(2))
+            .sum::<f64>()
+            / inliers.len() as f64)
+            .sqrt();
+        // Angles about the circle; the needle runs from the entry to the exit the short way.
+        let (e1, e2) = plane_basis(&circle.normal);
+        let angle = |q: &Point| {
+            let d = q - circle.center;
+            d.dot(&e2).atan2(d.dot(&e1))
+        };
+        let wrap = |v: f64| (v + PI).rem_euclid(2.0 * PI) - PI;
+        let (ae, ax) = (angle(&e), angle(&x));
+        let dir = wrap(ax - ae).signum();
+        let span = wrap(ax - ae).abs();
+        // Past the exit (the tip's side) and before the entry (the swage's side).
+        let past_exit = inliers
+            .iter()
+            .map(|q| dir * wrap(angle(q) - ax))
+            .filter(|&v| v > 0.0 && v < PI - span)
+            .fold(0.0f64, f64::max);
+        let before_entry = inliers
+            .iter()
+            .map(|q| -dir * wrap(angle(q) - ae))
+            .filter(|&v| v > 0.0 && v < PI - span)
+            .fold(0.0f64, f64::max);
+        diag.arc_rad = past_exit + span + before_entry;
+        let min_seen = p.min_tip_seen_m / r;
+        let (tip_angle, swage_angle) = if past_exit >= min_seen {
+            let tip = ax + dir * past_exit;
+            (tip, tip - dir * PI)
+        } else if before_entry >= min_seen {
+            let swage = ae - dir * before_entry;
+            (swage + dir * PI, swage)
+        } else {
+            return Err(PerceptionError::BadFit {
+                why: format!(
+                    "under {:.0} mm of the needle seen past either hole",
+                    p.min_tip_seen_m * 1e3
+                ),
+            });
+        };
+        let z = if swage_angle > tip_angle {
+            circle.normal
+        } else {
+            -circle.normal
+        };
+        let tip = circle.center + (e1 * tip_angle.cos() + e2 * tip_angle.sin()) * r;
+        let xa = (tip - circle.center).normalize();
+        let ya = z.cross(&xa);
+        let rot = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[xa, ya, z]));
+        let pose = Pose::from_parts(
+            nalgebra::Translation3::from(circle.center.coords),
+            UnitQuaternion::from_rotation_matrix(&rot),
+        );
+        let tight = (2.0 * (t - diag.rms_m) / t).clamp(0.0, 1.0);
+        let confidence = (share.sqrt() * tight).clamp(0.0, 1.0);
+        diag.times.fit = t3.elapsed();
+        if confidence < p.min_confidence {
+            return Err(PerceptionError::Uncertain { confidence });
+        }
+        Ok(PipelineOutput {
+            pose,
+            confidence,
+            diagnostics: diag,
+        })
+    }
+
     /// Thread pixels in the left view within `swage_search_m` of a robot-frame point.
     fn thread_near(&self, masks: &Masks, p: &Point) -> usize {
         let c = &self.calibration;
@@ -730,12 +998,12 @@ impl<C: StereoCamera + std::fmt::Debug> PipelineEstimator<C> {
 
 impl<C: StereoCamera + std::fmt::Debug> NeedleEstimator for PipelineEstimator<C> {
     fn estimate_needle(&mut self) -> Result<NeedleEstimate, PerceptionError> {
-        self.estimate_needle_held(None)
+        self.estimate_needle_with(None)
     }
 
-    fn estimate_needle_held(
+    fn estimate_needle_with(
         &mut self,
-        held: Option<&JawHint>,
+        hint: Option<&NeedleHint>,
     ) -> Result<NeedleEstimate, PerceptionError> {
         let StereoFrame { stamp, left, right } =
             self.camera.capture().map_err(|e| PerceptionError::Camera {
@@ -746,7 +1014,15 @@ impl<C: StereoCamera + std::fmt::Debug> NeedleEstimator for PipelineEstimator<C>
             .seed
             .wrapping_mul(0x9E37_79B9)
             .wrapping_add(self.estimates);
-        let out = self.pipeline.estimate(&left, &right, held, seed)?;
+        let out = match hint {
+            Some(NeedleHint::InTissue(holes)) => self
+                .pipeline
+                .estimate_in_tissue(&left, &right, holes, seed)?,
+            Some(NeedleHint::Held(jaw)) => {
+                self.pipeline.estimate(&left, &right, Some(jaw), seed)?
+            }
+            None => self.pipeline.estimate(&left, &right, None, seed)?,
+        };
         Ok(NeedleEstimate {
             pose: out.pose,
             confidence: out.confidence,

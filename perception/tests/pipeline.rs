@@ -127,3 +127,57 @@ proptest! {
         prop_assert!(inliers.len() >= 280, "{} inliers", inliers.len());
     }
 }
+
+#[test]
+fn a_needle_lodged_in_tissue_is_found_through_its_holes() {
+    use stitch_perception::TissueHint;
+    use stitch_robot::nalgebra::{Matrix3, Rotation3, Translation3, UnitQuaternion};
+    let r = renderer();
+    let p = NeedlePipeline::classical(r.calibration().clone(), Needle::default()).expect("p");
+    // Through the first wound point's holes (−5, 0, −120) mm and (5, 0, −120) mm, dipping
+    // under the tissue, the tip 50° past the exit.
+    let (entry, exit) = (
+        Point::new(-0.005, 0.0, -0.12),
+        Point::new(0.005, 0.0, -0.12),
+    );
+    let center = Point::new(
+        0.0,
+        0.0,
+        -0.12 + (0.012f64.powi(2) - 0.005f64.powi(2)).sqrt(),
+    );
+    let tip_angle = (-65.38f64 + 50.0).to_radians();
+    let x = Vector::new(tip_angle.cos(), 0.0, tip_angle.sin());
+    let z = Vector::y();
+    let rot = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[x, z.cross(&x), z]));
+    let truth = Pose::from_parts(
+        Translation3::from(center.coords),
+        UnitQuaternion::from_rotation_matrix(&rot),
+    );
+    let needle = Needle::default();
+    let swage = truth * needle.swage();
+    let scene = SceneView {
+        needle: Some((needle, truth)),
+        thread: vec![Point::new(-0.02, 0.0, -0.116), swage],
+        tools: vec![],
+    };
+    let pair = r.render(&scene, &Pose::identity(), &mut ChaCha8Rng::seed_from_u64(3));
+    // The holes as the plan knows them, a few tenths of a millimetre off.
+    let holes = TissueHint {
+        entry: entry + Vector::new(0.0002, 0.0, 0.0),
+        exit: exit + Vector::new(0.0, 0.0003, 0.0),
+    };
+    let out = p
+        .estimate_in_tissue(&pair.left, &pair.right, &holes, 1)
+        .expect("found");
+    let e = stitch_perception::PoseError::between(&needle, &out.pose, &truth);
+    assert!(e.tip_m < 0.001 && e.center_m < 0.001, "{e:?}");
+    // Holes a needle cannot pass through both of are refused.
+    let far = TissueHint {
+        entry: Point::new(-0.02, 0.0, -0.12),
+        exit: Point::new(0.02, 0.0, -0.12),
+    };
+    let err = p
+        .estimate_in_tissue(&pair.left, &pair.right, &far, 1)
+        .expect_err("too far apart");
+    assert!(err.to_string().contains("cannot pass"), "{err}");
+}

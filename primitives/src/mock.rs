@@ -75,6 +75,7 @@ pub fn mock_layout(scene: &SceneConfig, sensing: &SensingConfig) -> Layout {
     Layout {
         correction_point: p(sensing.corner),
         left_ready: p(scene.left_home),
+        right_ready: p(scene.right_home),
         // Above the wound's left side, in the middle of its length (modelling choice).
         handover_point: Point::new(
             wound.origin.x - 0.015,

@@ -15,7 +15,9 @@ use crate::{
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use std::sync::Arc;
-use stitch_perception::{JawHint, NeedleEnd, NeedleEstimate, NeedleEstimator};
+use stitch_perception::{
+    JawHint, NeedleEnd, NeedleEstimate, NeedleEstimator, NeedleHint, TissueHint,
+};
 use stitch_robot::nalgebra::{Rotation3, Translation3, Unit, UnitQuaternion};
 use stitch_robot::{Arm, Jaw, MoveHandle, Needle, Point, Pose, RobotError, Vector, WoundPoint};
 
@@ -78,6 +80,9 @@ pub struct Layout {
     pub left_ready: Point,
     /// Where the left driver presents the needle for handover.
     pub handover_point: Point,
+    /// Where the right driver waits out of the camera's view of the wound while the left
+    /// extracts (modelling choice: its start).
+    pub right_ready: Point,
 }
 
 /// The robot the primitives act on.
@@ -118,6 +123,8 @@ pub struct RobotPrimitives {
     /// The needle in the right tool's frame, as the last pose correction measured it: the
     /// next insertion uses it open loop, as the paper does.
     corrected_grasp: Option<Pose>,
+    /// The wound point the needle last went into (where extraction finds it).
+    last_point: Option<WoundPoint>,
 }
 
 /// A step that cannot go on, and why.
@@ -260,6 +267,7 @@ impl RobotPrimitives {
         Self {
             rig,
             corrected_grasp: None,
+            last_point: None,
         }
     }
 
@@ -271,18 +279,28 @@ impl RobotPrimitives {
     /// A needle estimate, waiting up to [`ESTIMATE_TRIES`] estimator cycles for one; `held`
     /// says which arm holds the needle nearer which end, if one does.
     fn estimate(&mut self, held: Option<(Hand, NeedleEnd)>) -> Step<NeedleEstimate> {
-        let hint = held.and_then(|(hand, end)| {
-            let arm = match hand {
-                Hand::Right => &self.rig.right,
-                Hand::Left => &self.rig.left,
-            };
-            arm.measured_cp().ok().map(|p| JawHint {
+        let hint = held.and_then(|(hand, end)| self.held_hint(hand, end));
+        self.estimate_with(hint)
+    }
+
+    /// Where the jaw of `hand` is, holding the needle nearer `end`.
+    fn held_hint(&self, hand: Hand, end: NeedleEnd) -> Option<NeedleHint> {
+        let arm = match hand {
+            Hand::Right => &self.rig.right,
+            Hand::Left => &self.rig.left,
+        };
+        arm.measured_cp().ok().map(|p| {
+            NeedleHint::Held(JawHint {
                 jaw: Point::from(p.translation.vector),
                 end,
             })
-        });
+        })
+    }
+
+    /// A needle estimate with this hint, waiting up to [`ESTIMATE_TRIES`] cycles.
+    fn estimate_with(&mut self, hint: Option<NeedleHint>) -> Step<NeedleEstimate> {
         for _ in 0..ESTIMATE_TRIES {
-            if let Ok(e) = self.rig.estimator.estimate_needle_held(hint.as_ref()) {
+            if let Ok(e) = self.rig.estimator.estimate_needle_with(hint.as_ref()) {
                 return Ok(e);
             }
         }
@@ -304,6 +322,7 @@ impl RobotPrimitives {
     }
 
     fn insert(&mut self, point: &WoundPoint, p: &InsertParams) -> Step<Measurements> {
+        self.last_point = Some(point.clone());
         let tool = self.rig.right.measured_cp().map_err(fault)?;
         let grasp = match self.corrected_grasp.take() {
             Some(g) => g,
@@ -359,8 +378,25 @@ impl RobotPrimitives {
     }
 
     fn extract(&mut self, p: &ExtractParams) -> Step<Measurements> {
-        // The needle is in the tissue, held by neither jaw.
-        let before = self.estimate(None)?;
+        // Clear the camera's view of the wound: the right driver, just released from the
+        // needle, would hide it.
+        let right = self.rig.right.measured_cp().map_err(fault)?;
+        if (Point::from(right.translation.vector) - self.rig.layout.right_ready).norm() > 0.005 {
+            let ready = Pose::from_parts(
+                Translation3::from(self.rig.layout.right_ready.coords),
+                right.rotation,
+            );
+            Self::moves(&self.rig.right, &[ready])?;
+        }
+        // The needle is in the tissue through the last wound point's holes, held by neither
+        // jaw.
+        let holes = self.last_point.as_ref().map(|wp| {
+            NeedleHint::InTissue(TissueHint {
+                entry: wp.entry,
+                exit: wp.exit,
+            })
+        });
+        let before = self.estimate_with(holes)?;
         let (center, normal, tip, swage) = before.features(&self.rig.needle);
         let left = self.rig.left.measured_cp().map_err(fault)?;
         let from = Point::from(left.translation.vector);
@@ -539,13 +575,10 @@ impl RobotPrimitives {
         let to_corner = shifted(&tool, self.rig.layout.correction_point - center);
         Self::moves(&self.rig.right, &[to_corner])?;
         // Average the samples: positions by mean, rotations by the normalised quaternion sum.
-        let hint = self.rig.right.measured_cp().ok().map(|p| JawHint {
-            jaw: Point::from(p.translation.vector),
-            end: NeedleEnd::Swage,
-        });
+        let hint = self.held_hint(Hand::Right, NeedleEnd::Swage);
         let mut grasps = Vec::new();
         for _ in 0..p.samples.max(1) {
-            if let Ok(e) = self.rig.estimator.estimate_needle_held(hint.as_ref()) {
+            if let Ok(e) = self.rig.estimator.estimate_needle_with(hint.as_ref()) {
                 grasps.push(to_corner.inverse() * e.pose);
             }
         }

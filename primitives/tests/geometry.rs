@@ -46,6 +46,7 @@ fn layout() -> Layout {
         correction_point: Point::new(-0.04, -0.03, -0.11),
         left_ready: Point::new(0.04, 0.02, -0.09),
         handover_point: Point::new(-0.015, 0.02, -0.09),
+        right_ready: Point::new(-0.03, 0.0, -0.09),
     }
 }
 
