@@ -525,7 +525,7 @@ pub fn bench(command: BenchCommand) -> anyhow::Result<u8> {
     let mut rows = Vec::new();
     let started = Instant::now();
     for &m in &matchers {
-        for (parallel, hinted) in [(false, false), (true, false), (false, true)] {
+        for (parallel, hinted) in [(false, false), (true, false), (false, true), (true, true)] {
             let mut p =
                 NeedlePipeline::classical(renderer.calibration().clone(), Needle::default())?;
             p.matcher = matcher(m);
@@ -594,7 +594,8 @@ fn row(m: MatcherKind, parallel: bool, hinted: bool, results: &[FrameResult]) ->
         mode: match (parallel, hinted) {
             (false, false) => "full frame, 1 thread",
             (true, false) => "full frame, all cores",
-            (_, true) => "jaw known, 1 thread",
+            (false, true) => "jaw known, 1 thread",
+            (true, true) => "jaw known, all cores",
         },
         render: latency(results.iter().map(|r| r.render.as_secs_f64()).collect()),
         segment: latency(secs(&|r| r.times.segment)),

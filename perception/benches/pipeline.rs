@@ -53,6 +53,7 @@ fn benches(c: &mut Criterion) {
         min_disparity: 150,
         max_disparity: 350,
         segmenter: seg.as_ref(),
+        parallel: false,
     };
     g.bench_function("disparity, mask rows", |b| {
         b.iter(|| pipeline.matcher.disparity(black_box(&input)).expect("map"))

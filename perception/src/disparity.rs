@@ -66,6 +66,8 @@ pub struct StereoInput<'a> {
     pub max_disparity: u32,
     /// The segmenter, for sub-pixel edges.
     pub segmenter: &'a dyn Segmenter,
+    /// Whether the matcher may use a second thread.
+    pub parallel: bool,
 }
 
 /// Computes a disparity map over `input.left_masks.roi`.
@@ -429,60 +431,72 @@ impl StereoMatcher for SemiGlobalMatcher {
             }
         }
         // Aggregate along four paths: → ← ↓ ↑; a path restarts where the active pixels
-        // stop.
-        let mut sum = vec![0u16; n * nd];
-        let mut prev = vec![0u16; nd];
-        let mut cur = vec![0u16; nd];
-        let paths: [(i64, i64); 4] = [(1, 0), (-1, 0), (0, 1), (0, -1)];
-        for (dx, dy) in paths {
-            let starts: Vec<(i64, i64)> = if dx != 0 {
-                (0..h as i64)
-                    .map(|y| (if dx > 0 { 0 } else { w as i64 - 1 }, y))
-                    .collect()
-            } else {
-                (0..w as i64)
-                    .map(|x| (x, if dy > 0 { 0 } else { h as i64 - 1 }))
-                    .collect()
-            };
-            for (sx, sy) in starts {
-                let (mut x, mut y) = (sx, sy);
-                let mut first = true;
-                while x >= 0 && y >= 0 && x < w as i64 && y < h as i64 {
-                    let here = slot(&index, y as usize * w + x as usize);
-                    x += dx;
-                    y += dy;
-                    let Some(c) = here else {
-                        first = true;
-                        continue;
-                    };
-                    let c = c * nd;
-                    let costs = &cost[c..c + nd];
-                    if first {
-                        for k in 0..nd {
-                            cur[k] = u16::from(costs[k]);
-                        }
-                        first = false;
-                    } else {
-                        let best_prev = prev.iter().copied().min().unwrap_or(0);
-                        for k in 0..nd {
-                            let mut m = prev[k];
-                            if k > 0 {
-                                m = m.min(prev[k - 1] + self.p1);
+        // stop. The horizontal and the vertical pair run on two threads if asked.
+        let along = |paths: &[(i64, i64)]| {
+            let mut sum = vec![0u16; n * nd];
+            let mut prev = vec![0u16; nd];
+            let mut cur = vec![0u16; nd];
+            for &(dx, dy) in paths {
+                let starts: Vec<(i64, i64)> = if dx != 0 {
+                    (0..h as i64)
+                        .map(|y| (if dx > 0 { 0 } else { w as i64 - 1 }, y))
+                        .collect()
+                } else {
+                    (0..w as i64)
+                        .map(|x| (x, if dy > 0 { 0 } else { h as i64 - 1 }))
+                        .collect()
+                };
+                for (sx, sy) in starts {
+                    let (mut x, mut y) = (sx, sy);
+                    let mut first = true;
+                    while x >= 0 && y >= 0 && x < w as i64 && y < h as i64 {
+                        let here = slot(&index, y as usize * w + x as usize);
+                        x += dx;
+                        y += dy;
+                        let Some(c) = here else {
+                            first = true;
+                            continue;
+                        };
+                        let c = c * nd;
+                        let costs = &cost[c..c + nd];
+                        if first {
+                            for k in 0..nd {
+                                cur[k] = u16::from(costs[k]);
                             }
-                            if k + 1 < nd {
-                                m = m.min(prev[k + 1] + self.p1);
+                            first = false;
+                        } else {
+                            let best_prev = prev.iter().copied().min().unwrap_or(0);
+                            for k in 0..nd {
+                                let mut m = prev[k];
+                                if k > 0 {
+                                    m = m.min(prev[k - 1] + self.p1);
+                                }
+                                if k + 1 < nd {
+                                    m = m.min(prev[k + 1] + self.p1);
+                                }
+                                m = m.min(best_prev + self.p2);
+                                cur[k] = u16::from(costs[k]) + m - best_prev;
                             }
-                            m = m.min(best_prev + self.p2);
-                            cur[k] = u16::from(costs[k]) + m - best_prev;
                         }
+                        for k in 0..nd {
+                            sum[c + k] = sum[c + k].saturating_add(cur[k]);
+                        }
+                        std::mem::swap(&mut prev, &mut cur);
                     }
-                    for k in 0..nd {
-                        sum[c + k] = sum[c + k].saturating_add(cur[k]);
-                    }
-                    std::mem::swap(&mut prev, &mut cur);
                 }
             }
-        }
+            sum
+        };
+        let sum = if input.parallel {
+            let (mut a, b) =
+                rayon::join(|| along(&[(1, 0), (-1, 0)]), || along(&[(0, 1), (0, -1)]));
+            for (x, y) in a.iter_mut().zip(&b) {
+                *x = x.saturating_add(*y);
+            }
+            a
+        } else {
+            along(&[(1, 0), (-1, 0), (0, 1), (0, -1)])
+        };
         // Winner takes all, sub-pixel by a parabola, uniqueness; then the right view's
         // disparities from the same sums for the left-right check.
         let mut left_d = vec![f32::INFINITY; w * h];
@@ -592,6 +606,7 @@ mod tests {
             min_disparity: 20,
             max_disparity: 60,
             segmenter: seg,
+            parallel: false,
         }
     }
 

@@ -273,6 +273,7 @@ impl NeedlePipeline {
             min_disparity: range[0],
             max_disparity: range[1],
             segmenter: self.segmenter.as_ref(),
+            parallel: self.parallel,
         })
     }
 
@@ -298,6 +299,7 @@ impl NeedlePipeline {
             min_disparity: range[0],
             max_disparity: range[1],
             segmenter: self.segmenter.as_ref(),
+            parallel: self.parallel,
         }) else {
             return range;
         };
@@ -687,6 +689,7 @@ impl NeedlePipeline {
             min_disparity: range[0],
             max_disparity: range[1],
             segmenter: self.segmenter.as_ref(),
+            parallel: self.parallel,
         })?;
         let t2 = Instant::now();
         let cloud = point_cloud(&disp, &lm, c, self.params.max_points);
