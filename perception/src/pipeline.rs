@@ -1,6 +1,7 @@
 //! The stereo needle pipeline: segmentation → disparity → point cloud → RANSAC plane →
-//! RANSAC circle (known radius) → endpoints, tip told from swage by the thread → a pose with
-//! a confidence, or a typed failure. Deterministic given its seed.
+//! RANSAC circle (known radius) → endpoints, tip told from swage by the holding jaw, the
+//! taper and the thread → a pose with a confidence, or a typed failure. Deterministic given
+//! its seed.
 
 use crate::disparity::{
     DisparityMap, MaskRowMatcher, SemiGlobalMatcher, StereoInput, StereoMatcher,
