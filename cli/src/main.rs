@@ -3,7 +3,9 @@
 
 mod mock;
 mod perceive;
+mod plot;
 mod show;
+mod trials;
 
 use anyhow::Context;
 use clap::{Parser, Subcommand, ValueEnum};
@@ -122,6 +124,10 @@ enum Command {
         #[command(subcommand)]
         command: perceive::PerceiveCommand,
     },
+    /// Run the policies over seeded trials on the mock and write the paper's Table I, every
+    /// trial's record and journal, and the Fig. 4 histogram (see docs/experiments.md).
+    #[command(after_help = EXIT_CODES)]
+    Trials(trials::TrialsArgs),
     /// Benchmarks: `stitch bench perception`.
     Bench {
         #[command(subcommand)]
@@ -132,14 +138,14 @@ enum Command {
 /// The mock dVRK's configuration file.
 #[derive(Debug, Default, serde::Deserialize)]
 #[serde(default, deny_unknown_fields)]
-struct MockConfig {
+pub(crate) struct MockConfig {
     scene: SceneConfig,
     sensing: SensingConfig,
     camera: CameraConfig,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
-enum PerceptionKind {
+pub(crate) enum PerceptionKind {
     /// The mock's noise model: truth plus position-dependent noise and dropouts.
     Model,
     /// The true needle pose, never dropping out.
@@ -200,6 +206,7 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
     match cli.command {
         Command::Perceive { command } => perceive::perceive(command),
         Command::Bench { command } => perceive::bench(command),
+        Command::Trials(args) => trials::trials(args),
         Command::Check {
             plan,
             explore: false,

@@ -8,6 +8,7 @@ mod runner;
 mod schedule;
 mod script;
 mod supervisor;
+pub mod trials;
 mod validate;
 
 pub use explore::{

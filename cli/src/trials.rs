@@ -1,0 +1,454 @@
+//! `stitch trials`: the paper's ablation (Table I, Fig. 4) on the mock, in parallel, with
+//! every file written deterministically.
+
+use crate::{MockConfig, PerceptionKind, exit};
+use anyhow::Context;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use stitch_engine::trials::{Estimate, Metrics, TrialRecord, metrics};
+use stitch_primitives::MockPerception;
+use stitch_sim::SensingConfig;
+
+/// The policies run by default, in the paper's order.
+pub const DEFAULT_POLICIES: [&str; 4] =
+    ["sensing_only", "thread_handling", "stitch", "stitch_human"];
+
+#[derive(Debug, clap::Args)]
+pub struct TrialsArgs {
+    /// Trials per policy.
+    #[arg(long, default_value_t = 15)]
+    trials: usize,
+    /// Trial i (counted from 0) of every policy runs with seed SEED + i: the policies meet
+    /// the same draws (common random numbers), and results do not depend on --jobs.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Policies: names of scripts in scripts/ (without .rhai) or paths to plan scripts.
+    #[arg(long, value_delimiter = ',', default_values_t = DEFAULT_POLICIES.map(String::from))]
+    policies: Vec<String>,
+    /// Worker threads [default: the cores available].
+    #[arg(long)]
+    jobs: Option<usize>,
+    /// Directory to write table.md, trials.csv, trials.json, histogram.svg, histogram.png and
+    /// journals/ into (created if missing).
+    #[arg(long)]
+    out: PathBuf,
+    /// How the mock estimates the needle pose (see `stitch run --help`).
+    #[arg(long, value_enum, default_value_t = PerceptionKind::Model)]
+    perception: PerceptionKind,
+    /// The mock's scene, models and faults (TOML; see docs/mock-dvrk.md).
+    #[arg(long)]
+    mock_config: Option<PathBuf>,
+}
+
+/// A row of the paper's Table I.
+struct PaperRow {
+    mean: f64,
+    /// Single-suture, three-throw and full-wound success, %.
+    success: [f64; 3],
+    time_s: f64,
+    errors: [u32; 4],
+    to_intervention: Option<f64>,
+}
+
+/// The paper's Table I row of a policy, by plan name.
+fn paper_row(name: &str) -> Option<PaperRow> {
+    let row = |mean, success, time_s, errors, to_intervention| PaperRow {
+        mean,
+        success,
+        time_s,
+        errors,
+        to_intervention,
+    };
+    match name {
+        "Sensing Only" => Some(row(1.40, [51.6, 0.0, 0.0], 106.8, [9, 6, 0, 0], None)),
+        "Thread Handling" => Some(row(1.80, [55.9, 20.0, 0.0], 117.9, [6, 5, 2, 2], None)),
+        "STITCH" => Some(row(2.93, [69.4, 73.3, 0.0], 159.3, [8, 5, 0, 2], None)),
+        "STITCH + Human" => Some(row(
+            4.47,
+            [83.3, 100.0, 20.0],
+            141.9,
+            [16, 10, 0, 2],
+            Some(2.25),
+        )),
+        _ => None,
+    }
+}
+
+/// One trial's outcome as a worker leaves it: the record and the journal's bytes.
+type TrialResult = anyhow::Result<(TrialRecord, Vec<u8>)>;
+
+struct Policy {
+    /// As given on the command line (file names use it).
+    key: String,
+    /// The plan's mission name.
+    name: String,
+    loaded: stitch_engine::Loaded,
+}
+
+pub fn trials(args: TrialsArgs) -> anyhow::Result<u8> {
+    if args.trials == 0 {
+        anyhow::bail!("--trials must be at least 1");
+    }
+    if args.policies.is_empty() {
+        anyhow::bail!("--policies names no policy");
+    }
+    let mock = match &args.mock_config {
+        Some(path) => {
+            let text = std::fs::read_to_string(path)
+                .with_context(|| format!("cannot read {}", path.display()))?;
+            toml::from_str::<MockConfig>(&text)
+                .with_context(|| format!("invalid mock configuration {}", path.display()))?
+        }
+        None => MockConfig::default(),
+    };
+    let mut policies = Vec::new();
+    for key in &args.policies {
+        let path = if key.ends_with(".rhai") {
+            PathBuf::from(key)
+        } else {
+            Path::new("scripts").join(format!("{key}.rhai"))
+        };
+        if !path.is_file() {
+            anyhow::bail!(
+                "unknown policy {key:?}: no {} (the policies are the scripts in scripts/: {})",
+                path.display(),
+                DEFAULT_POLICIES.join(", ")
+            );
+        }
+        let Some(loaded) = crate::load(&path, &mock.scene.wound)? else {
+            return Ok(exit::INVALID_PLAN);
+        };
+        let key = path
+            .file_stem()
+            .map_or_else(|| key.clone(), |s| s.to_string_lossy().into_owned());
+        policies.push(Policy {
+            key,
+            name: loaded.plan.name.clone(),
+            loaded,
+        });
+    }
+    std::fs::create_dir_all(args.out.join("journals"))
+        .with_context(|| format!("cannot create {}", args.out.display()))?;
+    let perception = match args.perception {
+        PerceptionKind::Model => MockPerception::Model(mock.sensing),
+        PerceptionKind::Perfect => MockPerception::Model(SensingConfig::perfect()),
+        PerceptionKind::Fitted => MockPerception::Model(SensingConfig::fitted_to_pipeline()),
+        PerceptionKind::Pipeline => MockPerception::Pipeline(Box::new(mock.camera.clone())),
+    };
+    let jobs: Vec<(usize, u64)> = (0..policies.len())
+        .flat_map(|p| (0..args.trials as u64).map(move |i| (p, args.seed + i)))
+        .collect();
+    let workers = args
+        .jobs
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
+        .clamp(1, jobs.len());
+    let started = std::time::Instant::now();
+    let bar = indicatif::ProgressBar::new(jobs.len() as u64);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template("{bar:40} {pos}/{len} trials, {elapsed} {msg}")
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+    );
+    let results: Mutex<Vec<Option<TrialResult>>> =
+        Mutex::new((0..jobs.len()).map(|_| None).collect());
+    let next = AtomicUsize::new(0);
+    std::thread::scope(|s| {
+        for _ in 0..workers {
+            s.spawn(|| {
+                loop {
+                    let j = next.fetch_add(1, Ordering::Relaxed);
+                    let Some(&(p, seed)) = jobs.get(j) else { break };
+                    let policy = &policies[p];
+                    let result =
+                        crate::run_mock(&policy.loaded, &mock.scene, perception.clone(), seed)
+                            .and_then(|report| {
+                                let record = TrialRecord::from_report(
+                                    &policy.name,
+                                    seed,
+                                    &policy.loaded.plan,
+                                    &report,
+                                );
+                                let mut journal = Vec::new();
+                                report.journal.write_jsonl(&mut journal)?;
+                                Ok((record, journal))
+                            });
+                    results
+                        .lock()
+                        .unwrap_or_else(std::sync::PoisonError::into_inner)[j] = Some(result);
+                    bar.inc(1);
+                }
+            });
+        }
+    });
+    bar.finish_and_clear();
+    let results = results
+        .into_inner()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
+    let mut records: Vec<Vec<TrialRecord>> = policies.iter().map(|_| Vec::new()).collect();
+    for (&(p, seed), r) in jobs.iter().zip(results) {
+        let (record, journal) = r.context("a trial did not run")?.with_context(|| {
+            format!(
+                "trial {} of {} (seed {seed})",
+                seed - args.seed + 1,
+                policies[p].key
+            )
+        })?;
+        let path = args
+            .out
+            .join("journals")
+            .join(format!("{}-{seed}.jsonl", policies[p].key));
+        std::fs::write(&path, journal)
+            .with_context(|| format!("cannot write {}", path.display()))?;
+        records[p].push(record);
+    }
+    let all: Vec<Metrics> = policies
+        .iter()
+        .zip(&records)
+        .map(|(p, r)| metrics(&p.name, r))
+        .collect();
+    let write = |name: &str, text: &[u8]| {
+        let path = args.out.join(name);
+        std::fs::write(&path, text).with_context(|| format!("cannot write {}", path.display()))
+    };
+    let table = table_md(&all, &args);
+    write("table.md", table.as_bytes())?;
+    write("trials.csv", csv(&records).as_bytes())?;
+    let json = serde_json::json!({
+        "seed": args.seed,
+        "trials_per_policy": args.trials,
+        "perception": format!("{:?}", args.perception).to_lowercase(),
+        "seeds": "trial i (from 0) of every policy runs with seed + i",
+        "metrics": all,
+        "trials": records.iter().flatten().collect::<Vec<_>>(),
+    });
+    write(
+        "trials.json",
+        (serde_json::to_string_pretty(&json)? + "\n").as_bytes(),
+    )?;
+    let hist = histogram(
+        &policies.iter().map(|p| p.name.clone()).collect::<Vec<_>>(),
+        &records,
+    );
+    write("histogram.svg", histogram_svg(&hist).as_bytes())?;
+    crate::plot::histogram_png(&args.out.join("histogram.png"), &hist)?;
+    print!("{table}");
+    eprintln!(
+        "{} trials of {} policies in {:.1} s on {workers} threads; wrote {}",
+        jobs.len(),
+        policies.len(),
+        started.elapsed().as_secs_f64(),
+        args.out.display()
+    );
+    Ok(exit::OK)
+}
+
+fn ci(e: &Estimate, scale: f64, digits: usize) -> String {
+    format!(
+        "{:.d$} [{:.d$}, {:.d$}]",
+        e.value * scale,
+        e.low * scale,
+        e.high * scale,
+        d = digits
+    )
+}
+
+fn table_md(all: &[Metrics], args: &TrialsArgs) -> String {
+    let mut s = String::new();
+    let _ = writeln!(
+        s,
+        "# Table I on the mock dVRK\n\n{} trials per policy, seeds {}–{} (trial i, counted from 0, of every policy uses seed {} + i), perception `{}`. 95 % intervals in brackets. Each policy's row from this run is followed by the paper's (15 physical trials).\n",
+        args.trials,
+        args.seed,
+        args.seed + args.trials as u64 - 1,
+        args.seed,
+        format!("{:?}", args.perception).to_lowercase()
+    );
+    s += "| policy | mean sutures to failure | single-suture success | three-throw success | full-wound success | mean time per suture | I | E | H | T | mean sutures to intervention |\n|---|---|---|---|---|---|---|---|---|---|---|\n";
+    for m in all {
+        let _ = writeln!(
+            s,
+            "| {} | {} | {} % | {} % | {} % | {} | {} | {} | {} | {} | {} |",
+            m.policy,
+            ci(&m.mean_sutures_to_failure, 1.0, 2),
+            ci(&m.single_suture_success, 100.0, 1),
+            ci(&m.three_throw_success, 100.0, 1),
+            ci(&m.full_wound_success, 100.0, 1),
+            m.mean_time_per_suture_s
+                .map_or("–".into(), |t| format!("{t:.1} s")),
+            m.errors[0],
+            m.errors[1],
+            m.errors[2],
+            m.errors[3],
+            m.mean_sutures_to_intervention
+                .map_or("–".into(), |v| format!("{v:.2}")),
+        );
+        if let Some(p) = paper_row(&m.policy) {
+            let _ = writeln!(
+                s,
+                "| *paper* | *{:.2}* | *{:.1} %* | *{:.1} %* | *{:.1} %* | *{:.1} s* | *{}* | *{}* | *{}* | *{}* | *{}* |",
+                p.mean,
+                p.success[0],
+                p.success[1],
+                p.success[2],
+                p.time_s,
+                p.errors[0],
+                p.errors[1],
+                p.errors[2],
+                p.errors[3],
+                p.to_intervention.map_or("–".into(), |v| format!("{v:.2}"))
+            );
+        }
+    }
+    s += "\nMetrics (the paper's definitions, made exact):\n\n\
+- **mean sutures to failure**: the mean over trials of the throws completed before the trial ended (Student's t interval);\n\
+- **single-suture success**: all completed throws over all suture attempts, an attempt being a completed throw or an error (Wilson interval);\n\
+- **three-throw success**: the share of trials with at least three completed throws (Wilson);\n\
+- **full-wound success**: the share of trials that completed every throw (Wilson);\n\
+- **mean time per suture**: all simulated time over all completed throws (no interval);\n\
+- **I, E, H, T**: errors by class: the trial-ending error and every error that led to an intervention (insertion, extraction, handover, thread management, as the engine classes them);\n\
+- **mean sutures to intervention**: over every intervention request, the throws completed since the previous request or the trial's start.\n\
+\nThe paper's numbers are physical trials, 15 per policy; the mock's are simulated (docs/experiments.md says which of its parameters are physical and which are modelling choices).\n";
+    s
+}
+
+fn csv(records: &[Vec<TrialRecord>]) -> String {
+    let mut s = String::from(
+        "policy,seed,throws,sutures,outcome,failure,errors_I,errors_E,errors_H,errors_T,interventions,duration_s,time_per_suture_s,entry_error_mm,exit_error_mm\n",
+    );
+    let opt = |v: Option<f64>, d: usize| v.map_or(String::new(), |v| format!("{v:.d$}"));
+    for r in records.iter().flatten() {
+        let _ = writeln!(
+            s,
+            "\"{}\",{},{},{},{},{},{},{},{},{},{},{:.3},{},{},{}",
+            r.policy.replace('"', "\"\""),
+            r.seed,
+            r.throws,
+            r.sutures,
+            r.outcome,
+            r.failure.as_deref().unwrap_or(""),
+            r.errors[0],
+            r.errors[1],
+            r.errors[2],
+            r.errors[3],
+            r.interventions,
+            r.duration_s,
+            opt((r.sutures > 0).then(|| r.duration_s / r.sutures as f64), 3),
+            opt(r.entry_error_mm, 4),
+            opt(r.exit_error_mm, 4),
+        );
+    }
+    s
+}
+
+/// Per policy, trials by sutures to failure (0 to the most throws).
+pub struct Histogram {
+    pub policies: Vec<String>,
+    /// `counts[p][k]`: trials of policy p with k sutures.
+    pub counts: Vec<Vec<u32>>,
+}
+
+fn histogram(names: &[String], records: &[Vec<TrialRecord>]) -> Histogram {
+    let most = records
+        .iter()
+        .flatten()
+        .map(|r| r.throws.max(r.sutures))
+        .max()
+        .unwrap_or(6);
+    let counts = records
+        .iter()
+        .map(|rs| {
+            let mut c = vec![0u32; most + 1];
+            for r in rs {
+                c[r.sutures] += 1;
+            }
+            c
+        })
+        .collect();
+    Histogram {
+        policies: names.to_vec(),
+        counts,
+    }
+}
+
+/// The bar colours, one per policy (colour-blind-safe Okabe–Ito).
+pub const COLORS: [[u8; 3]; 6] = [
+    [230, 159, 0],
+    [86, 180, 233],
+    [0, 158, 115],
+    [213, 94, 0],
+    [204, 121, 167],
+    [0, 114, 178],
+];
+
+fn histogram_svg(h: &Histogram) -> String {
+    let (w, ht) = (720.0, 420.0);
+    let (left, right, top, bottom) = (60.0, 20.0, 40.0, 90.0);
+    let groups = h.counts.first().map_or(1, Vec::len);
+    let most = h.counts.iter().flatten().copied().max().unwrap_or(1).max(1);
+    let gw = (w - left - right) / groups as f64;
+    let bw = gw * 0.8 / h.policies.len().max(1) as f64;
+    let y = |v: f64| top + (ht - top - bottom) * (1.0 - v / most as f64);
+    let mut s = format!(
+        "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{w}\" height=\"{ht}\" viewBox=\"0 0 {w} {ht}\" font-family=\"sans-serif\" font-size=\"12\">\n<rect width=\"{w}\" height=\"{ht}\" fill=\"white\"/>\n<text x=\"{}\" y=\"22\" text-anchor=\"middle\" font-size=\"15\">Sutures to failure by policy</text>\n",
+        w / 2.0
+    );
+    for t in 0..=most {
+        let yy = y(f64::from(t));
+        let _ = writeln!(
+            s,
+            "<line x1=\"{left}\" x2=\"{}\" y1=\"{yy:.1}\" y2=\"{yy:.1}\" stroke=\"#ddd\"/><text x=\"{}\" y=\"{:.1}\" text-anchor=\"end\">{t}</text>",
+            w - right,
+            left - 6.0,
+            yy + 4.0
+        );
+    }
+    for k in 0..groups {
+        let gx = left + gw * k as f64 + gw * 0.1;
+        for (p, counts) in h.counts.iter().enumerate() {
+            let c = COLORS[p % COLORS.len()];
+            let v = f64::from(counts[k]);
+            let _ = writeln!(
+                s,
+                "<rect x=\"{:.1}\" y=\"{:.1}\" width=\"{bw:.1}\" height=\"{:.1}\" fill=\"rgb({},{},{})\"/>",
+                gx + bw * p as f64,
+                y(v),
+                y(0.0) - y(v),
+                c[0],
+                c[1],
+                c[2]
+            );
+        }
+        let _ = writeln!(
+            s,
+            "<text x=\"{:.1}\" y=\"{:.1}\" text-anchor=\"middle\">{k}</text>",
+            left + gw * (k as f64 + 0.5),
+            y(0.0) + 16.0
+        );
+    }
+    let _ = writeln!(
+        s,
+        "<text x=\"{:.1}\" y=\"{:.1}\" text-anchor=\"middle\">sutures to failure</text>\n<text x=\"16\" y=\"{:.1}\" transform=\"rotate(-90 16 {:.1})\" text-anchor=\"middle\">trials</text>",
+        left + (w - left - right) / 2.0,
+        y(0.0) + 34.0,
+        (top + ht - bottom) / 2.0,
+        (top + ht - bottom) / 2.0
+    );
+    for (p, name) in h.policies.iter().enumerate() {
+        let c = COLORS[p % COLORS.len()];
+        let x = left + 160.0 * p as f64;
+        let yy = ht - 26.0;
+        let _ = writeln!(
+            s,
+            "<rect x=\"{x:.1}\" y=\"{:.1}\" width=\"12\" height=\"12\" fill=\"rgb({},{},{})\"/><text x=\"{:.1}\" y=\"{yy:.1}\">{}</text>",
+            yy - 10.0,
+            c[0],
+            c[1],
+            c[2],
+            x + 16.0,
+            name.replace('&', "&amp;").replace('<', "&lt;")
+        );
+    }
+    s += "</svg>\n";
+    s
+}

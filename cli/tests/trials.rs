@@ -1,0 +1,154 @@
+//! `stitch trials`: every file written, the same bytes whatever the number of threads, and
+//! bad arguments refused with the reason.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn stitch(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_stitch"))
+        .args(args)
+        .current_dir(Path::new(env!("CARGO_MANIFEST_DIR")).join(".."))
+        .output()
+        .expect("the stitch binary runs")
+}
+
+fn dir(name: &str) -> PathBuf {
+    std::env::temp_dir().join(format!("stitch-trials-{}-{name}", std::process::id()))
+}
+
+fn text(b: &[u8]) -> String {
+    String::from_utf8_lossy(b).into_owned()
+}
+
+fn files(d: &Path) -> Vec<(String, Vec<u8>)> {
+    let mut out = Vec::new();
+    for sub in ["", "journals"] {
+        let mut names: Vec<_> = std::fs::read_dir(d.join(sub))
+            .expect("dir")
+            .map(|e| e.expect("entry").path())
+            .filter(|p| p.is_file())
+            .collect();
+        names.sort();
+        for p in names {
+            let name = p.strip_prefix(d).expect("inside").display().to_string();
+            out.push((name, std::fs::read(&p).expect("read")));
+        }
+    }
+    out
+}
+
+#[test]
+fn trials_write_every_file_and_the_same_bytes_on_one_or_two_threads() {
+    let (a, b) = (dir("a"), dir("b"));
+    for (d, jobs) in [(&a, "1"), (&b, "2")] {
+        let out = stitch(&[
+            "trials",
+            "--trials",
+            "3",
+            "--seed",
+            "5",
+            "--jobs",
+            jobs,
+            "--out",
+            d.to_str().expect("utf-8"),
+        ]);
+        assert_eq!(out.status.code(), Some(0), "{}", text(&out.stderr));
+        assert!(
+            text(&out.stdout).contains("| *paper* | *2.93* |"),
+            "{}",
+            text(&out.stdout)
+        );
+    }
+    let (fa, fb) = (files(&a), files(&b));
+    let names: Vec<&str> = fa.iter().map(|(n, _)| n.as_str()).collect();
+    for want in [
+        "table.md",
+        "trials.csv",
+        "trials.json",
+        "histogram.svg",
+        "histogram.png",
+    ] {
+        assert!(names.contains(&want), "{want} missing: {names:?}");
+    }
+    // 4 policies × 3 trials, seeds 5, 6, 7.
+    assert_eq!(
+        names.iter().filter(|n| n.starts_with("journals")).count(),
+        12
+    );
+    assert!(
+        names.contains(&"journals/stitch_human-7.jsonl"),
+        "{names:?}"
+    );
+    assert_eq!(fa, fb, "the files depend on --jobs");
+    let csv = text(&fa.iter().find(|(n, _)| n == "trials.csv").expect("csv").1);
+    assert_eq!(csv.lines().count(), 1 + 12);
+    assert!(csv.starts_with("policy,seed,throws,sutures,outcome,failure,errors_I"));
+    let png = &fa
+        .iter()
+        .find(|(n, _)| n == "histogram.png")
+        .expect("png")
+        .1;
+    assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n");
+    let json: serde_json::Value =
+        serde_json::from_slice(&fa.iter().find(|(n, _)| n == "trials.json").expect("json").1)
+            .expect("JSON");
+    assert_eq!(json["trials"].as_array().expect("trials").len(), 12);
+    assert_eq!(json["metrics"].as_array().expect("metrics").len(), 4);
+    // The journals are the runs: the same seed with `stitch run` writes the same journal.
+    let j = dir("run.jsonl");
+    let out = stitch(&[
+        "run",
+        "scripts/stitch.rhai",
+        "--seed",
+        "6",
+        "--journal",
+        j.to_str().expect("utf-8"),
+    ]);
+    assert!(
+        matches!(out.status.code(), Some(0 | 4)),
+        "{}",
+        text(&out.stderr)
+    );
+    let journal = &fa
+        .iter()
+        .find(|(n, _)| n == "journals/stitch-6.jsonl")
+        .expect("j")
+        .1;
+    assert_eq!(&std::fs::read(&j).expect("journal"), journal);
+}
+
+#[test]
+fn bad_trial_arguments_are_refused_with_the_reason() {
+    let d = dir("bad");
+    let d = d.to_str().expect("utf-8");
+    let out = stitch(&["trials", "--policies", "stitch,nope", "--out", d]);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(
+        text(&out.stderr).contains("unknown policy \"nope\""),
+        "{}",
+        text(&out.stderr)
+    );
+    let out = stitch(&["trials", "--trials", "0", "--out", d]);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(
+        text(&out.stderr).contains("--trials"),
+        "{}",
+        text(&out.stderr)
+    );
+    // An output "directory" that is a file.
+    let file = dir("file");
+    std::fs::write(&file, "x").expect("write");
+    let out = stitch(&[
+        "trials",
+        "--trials",
+        "1",
+        "--out",
+        file.to_str().expect("utf-8"),
+    ]);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(
+        text(&out.stderr).contains("cannot create"),
+        "{}",
+        text(&out.stderr)
+    );
+}
