@@ -11,9 +11,14 @@ use stitch_engine::trials::{Estimate, Metrics, TrialRecord, metrics};
 use stitch_primitives::MockPerception;
 use stitch_sim::SensingConfig;
 
-/// The policies run by default, in the paper's order.
-pub const DEFAULT_POLICIES: [&str; 4] =
-    ["sensing_only", "thread_handling", "stitch", "stitch_human"];
+/// The policies run by default: the paper's, in its order, then STITCH+.
+pub const DEFAULT_POLICIES: [&str; 5] = [
+    "sensing_only",
+    "thread_handling",
+    "stitch",
+    "stitch_human",
+    "stitch_plus",
+];
 
 #[derive(Debug, clap::Args)]
 pub struct TrialsArgs {

@@ -70,10 +70,10 @@ fn trials_write_every_file_and_the_same_bytes_on_one_or_two_threads() {
     ] {
         assert!(names.contains(&want), "{want} missing: {names:?}");
     }
-    // 4 policies × 3 trials, seeds 5, 6, 7.
+    // 5 policies × 3 trials, seeds 5, 6, 7.
     assert_eq!(
         names.iter().filter(|n| n.starts_with("journals")).count(),
-        12
+        15
     );
     assert!(
         names.contains(&"journals/stitch_human-7.jsonl"),
@@ -81,7 +81,7 @@ fn trials_write_every_file_and_the_same_bytes_on_one_or_two_threads() {
     );
     assert_eq!(fa, fb, "the files depend on --jobs");
     let csv = text(&fa.iter().find(|(n, _)| n == "trials.csv").expect("csv").1);
-    assert_eq!(csv.lines().count(), 1 + 12);
+    assert_eq!(csv.lines().count(), 1 + 15);
     assert!(csv.starts_with("policy,seed,throws,sutures,outcome,failure,errors_I"));
     let png = &fa
         .iter()
@@ -92,8 +92,8 @@ fn trials_write_every_file_and_the_same_bytes_on_one_or_two_threads() {
     let json: serde_json::Value =
         serde_json::from_slice(&fa.iter().find(|(n, _)| n == "trials.json").expect("json").1)
             .expect("JSON");
-    assert_eq!(json["trials"].as_array().expect("trials").len(), 12);
-    assert_eq!(json["metrics"].as_array().expect("metrics").len(), 4);
+    assert_eq!(json["trials"].as_array().expect("trials").len(), 15);
+    assert_eq!(json["metrics"].as_array().expect("metrics").len(), 5);
     // The journals are the runs: the same seed with `stitch run` writes the same journal.
     let j = dir("run.jsonl");
     let out = stitch(&[

@@ -164,6 +164,11 @@ pub struct InsertParams {
     pub push_m: f64,
     /// Stand-off of the tip from the entry before it goes in, m.
     pub standoff_m: f64,
+    /// Needle pose estimates averaged for the grasp right before the insertion. 0, the
+    /// paper's: the last pose correction's measurement if there is one, else one estimate.
+    /// N ≥ 1: always N fresh estimates (closing the loop after the correction's open-loop
+    /// turn).
+    pub samples: u32,
 }
 impl Default for InsertParams {
     fn default() -> Self {
@@ -171,6 +176,7 @@ impl Default for InsertParams {
             rotation_rad: INSERT_ROTATION_RAD,
             push_m: INSERT_PUSH_M,
             standoff_m: INSERT_STANDOFF_M,
+            samples: 0,
         }
     }
 }
@@ -414,6 +420,7 @@ impl StepKind {
             (StepKind::Insert(p), "rotation") => A(p.rotation_rad),
             (StepKind::Insert(p), "push") => L(p.push_m),
             (StepKind::Insert(p), "standoff") => L(p.standoff_m),
+            (StepKind::Insert(p), "samples") => C(i64::from(p.samples)),
             (StepKind::Sweep(p), "distance") => L(p.distance_m),
             (StepKind::Sweep(p), "jaw_open") => A(p.jaw_open_rad),
             (StepKind::Extract(p), "retries") => C(i64::from(p.retries)),
@@ -451,6 +458,7 @@ impl StepKind {
             (StepKind::Insert(p), "rotation", A(v)) => p.rotation_rad = v,
             (StepKind::Insert(p), "push", L(v)) => p.push_m = v,
             (StepKind::Insert(p), "standoff", L(v)) => p.standoff_m = v,
+            (StepKind::Insert(p), "samples", C(v)) => p.samples = sat32(v),
             (StepKind::Sweep(p), "distance", L(v)) => p.distance_m = v,
             (StepKind::Sweep(p), "jaw_open", A(v)) => p.jaw_open_rad = v,
             (StepKind::Extract(p), "retries", C(v)) => p.retries = sat8(v),
@@ -518,6 +526,13 @@ pub fn param_specs(name: &str) -> &'static [ParamSpec] {
             0.002,
             0.03,
             "stand-off of the tip from the entry before it goes in"
+        ),
+        spec!(
+            "samples",
+            Count,
+            0.0,
+            20.0,
+            "fresh needle pose estimates averaged right before inserting (0: the correction's)"
         ),
     ];
     const SWEEP: &[ParamSpec] = &[

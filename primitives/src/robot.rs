@@ -324,9 +324,21 @@ impl RobotPrimitives {
     fn insert(&mut self, point: &WoundPoint, p: &InsertParams) -> Step<Measurements> {
         self.last_point = Some(point.clone());
         let tool = self.rig.right.measured_cp().map_err(fault)?;
-        let grasp = match self.corrected_grasp.take() {
-            Some(g) => g,
-            None => tool.inverse() * self.estimate(RIGHT_AT_SWAGE)?.pose,
+        let corrected = self.corrected_grasp.take();
+        let grasp = match corrected {
+            Some(g) if p.samples == 0 => g,
+            _ => {
+                // Average the fresh estimates of the needle in the jaw (positions by mean,
+                // rotations by the normalised quaternion sum); one must come.
+                let mut grasps = vec![tool.inverse() * self.estimate(RIGHT_AT_SWAGE)?.pose];
+                let hint = self.held_hint(Hand::Right, NeedleEnd::Swage);
+                for _ in 1..p.samples.max(1) {
+                    if let Ok(e) = self.rig.estimator.estimate_needle_with(hint.as_ref()) {
+                        grasps.push(tool.inverse() * e.pose);
+                    }
+                }
+                mean_pose(&grasps)
+            }
         };
         let waypoints = insertion_waypoints(&self.rig.needle, &grasp, point, p);
         Self::moves(&self.rig.right, &waypoints[..1])?;
@@ -712,6 +724,7 @@ mod tests {
             rotation_rad: 45f64.to_radians(),
             push_m: 7.0 * MM,
             standoff_m: 10.0 * MM,
+            samples: 0,
         };
         let w = insertion_waypoints(&needle, &grasp, &point(), &p);
         assert_eq!(w.len(), 3 + 9, "stand-off, start, push, nine 5° steps");
