@@ -152,3 +152,33 @@ fn bad_trial_arguments_are_refused_with_the_reason() {
         text(&out.stderr)
     );
 }
+
+#[test]
+fn the_results_in_docs_are_what_the_documented_command_writes() {
+    let d = dir("docs");
+    let out = stitch(&[
+        "trials",
+        "--trials",
+        "15",
+        "--seed",
+        "1",
+        "--out",
+        d.to_str().expect("utf-8"),
+    ]);
+    assert_eq!(out.status.code(), Some(0), "{}", text(&out.stderr));
+    let docs = Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs");
+    for f in ["table.md", "histogram.svg", "histogram.png"] {
+        let fresh = std::fs::read(d.join(f)).expect("fresh");
+        let kept = std::fs::read(docs.join("experiments").join(f)).expect("kept");
+        assert!(
+            fresh == kept,
+            "docs/experiments/{f} is stale: rerun `stitch trials --trials 15 --seed 1 --out DIR` and copy it"
+        );
+    }
+    // docs/experiments.md shows the same rows.
+    let page = std::fs::read_to_string(docs.join("experiments.md")).expect("page");
+    let table = std::fs::read_to_string(d.join("table.md")).expect("table");
+    for row in table.lines().filter(|l| l.starts_with("| ")) {
+        assert!(page.contains(row), "docs/experiments.md lacks {row}");
+    }
+}
