@@ -7,7 +7,7 @@ use rand_chacha::rand_core::SeedableRng;
 use std::hint::black_box;
 use stitch_perception::disparity::StereoInput;
 use stitch_perception::evaluate::{self, jaw_hint};
-use stitch_perception::{NeedlePipeline, Rect, SemiGlobalMatcher, StereoMatcher};
+use stitch_perception::{MaskRowMatcher, NeedlePipeline, Rect, SemiGlobalMatcher, StereoMatcher};
 use stitch_robot::{Needle, Pose, SimClock};
 use stitch_sim::{CameraConfig, MockDvrk, SceneConfig, StereoRenderer, Streams};
 
@@ -56,8 +56,16 @@ fn benches(c: &mut Criterion) {
         parallel: false,
     };
     g.bench_function("disparity, mask rows", |b| {
-        b.iter(|| pipeline.matcher.disparity(black_box(&input)).expect("map"))
+        let rows = MaskRowMatcher::default();
+        b.iter(|| rows.disparity(black_box(&input)).expect("map"))
     });
+    g.bench_function(
+        "disparity, semi-global around the mask (200 disparities)",
+        |b| {
+            let sgm = SemiGlobalMatcher::default();
+            b.iter(|| sgm.disparity(black_box(&input)).expect("map"))
+        },
+    );
     g.bench_function("end to end, full frame", |b| {
         b.iter(|| {
             pipeline
@@ -73,10 +81,16 @@ fn benches(c: &mut Criterion) {
         })
     });
     g.sample_size(10);
-    g.bench_function("disparity, semi-global (200 disparities)", |b| {
-        let sgm = SemiGlobalMatcher::default();
-        b.iter(|| sgm.disparity(black_box(&input)).expect("map"))
-    });
+    g.bench_function(
+        "disparity, semi-global over the whole region (200 disparities)",
+        |b| {
+            let sgm = SemiGlobalMatcher {
+                around_mask_px: None,
+                ..SemiGlobalMatcher::default()
+            };
+            b.iter(|| sgm.disparity(black_box(&input)).expect("map"))
+        },
+    );
     g.finish();
 }
 
