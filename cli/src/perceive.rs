@@ -372,6 +372,7 @@ pub fn perceive(command: PerceiveCommand) -> anyhow::Result<u8> {
             let p = pipeline(c, &options)?;
             let map = match p.disparity(&l, &r, roi) {
                 Ok(m) => m,
+                Err(e @ PerceptionError::Config { .. }) => anyhow::bail!("{e}"),
                 Err(e) => {
                     failure_json(&mut std::io::stdout().lock(), &e)?;
                     eprintln!("no disparity: {e}");

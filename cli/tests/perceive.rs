@@ -190,6 +190,25 @@ fn bad_calibrations_and_images_are_refused_with_the_reason() {
         "{}",
         text(&out.stdout)
     );
+    // A region past the image's edge.
+    let out = stitch(&[
+        "perceive",
+        "disparity",
+        s(&d.join("left.png")),
+        s(&d.join("right.png")),
+        "--calib",
+        s(&d.join("calib.toml")),
+        "--out",
+        s(&d.join("x.pfm")),
+        "--roi",
+        "0,0,5000,5000",
+    ]);
+    assert_eq!(out.status.code(), Some(1), "{}", text(&out.stderr));
+    assert!(
+        text(&out.stderr).contains("not inside the 1280×960 image"),
+        "{}",
+        text(&out.stderr)
+    );
     // A missing image.
     let out = stitch(&[
         "perceive",

@@ -265,6 +265,16 @@ impl NeedlePipeline {
         let c = &self.calibration;
         check_image(left, c.width, c.height, "left")?;
         check_image(right, c.width, c.height, "right")?;
+        if let Some(r) = roi {
+            if r.is_empty() || r.x1 > c.width || r.y1 > c.height {
+                return Err(PerceptionError::Config {
+                    message: format!(
+                        "region {}..{} × {}..{} is not inside the {}×{} image",
+                        r.x0, r.x1, r.y0, r.y1, c.width, c.height
+                    ),
+                });
+            }
+        }
         let (lm, rm, range) = self.masks(left, right, roi, None)?;
         self.matcher.disparity(&StereoInput {
             left,

@@ -48,6 +48,15 @@ impl Rect {
             y1: (self.y1 + m).min(h),
         }
     }
+    /// The part inside a `w × h` image.
+    pub fn clipped(&self, w: u32, h: u32) -> Rect {
+        Rect {
+            x0: self.x0.min(w),
+            y0: self.y0.min(h),
+            x1: self.x1.min(w),
+            y1: self.y1.min(h),
+        }
+    }
     /// The whole of a `w × h` image.
     pub fn full(w: u32, h: u32) -> Rect {
         Rect {
@@ -163,6 +172,7 @@ impl ColorSegmenter {
 
 impl Segmenter for ColorSegmenter {
     fn locate(&self, image: &RgbImage, within: Rect) -> Option<Rect> {
+        let within = within.clipped(image.width, image.height);
         let s = self.stride.max(1);
         let w = image.width as usize;
         let gw = within.width().div_ceil(s) as usize;
@@ -245,6 +255,7 @@ impl Segmenter for ColorSegmenter {
     }
 
     fn segment(&self, image: &RgbImage, roi: Rect) -> Masks {
+        let roi = roi.clipped(image.width, image.height);
         let w = image.width as usize;
         let (rw, rh) = (roi.width() as usize, roi.height() as usize);
         let mut needle = vec![0u8; rw * rh];
@@ -348,6 +359,36 @@ mod tests {
         assert!(m.is_needle(120, 52) && !m.is_needle(120, 60));
         let blank = image_with(320, 240, [206, 122, 118], &[]);
         assert_eq!(s.locate(&blank, Rect::full(320, 240)), None);
+    }
+
+    #[test]
+    fn regions_past_the_image_are_clipped_not_a_panic() {
+        let img = image_with(64, 48, [160, 160, 160], &[]);
+        let s = ColorSegmenter::default();
+        let far = Rect {
+            x0: 60,
+            y0: 40,
+            x1: 5000,
+            y1: 5000,
+        };
+        assert!(s.locate(&img, far).is_some());
+        assert_eq!(
+            s.segment(&img, far).roi,
+            Rect {
+                x0: 60,
+                y0: 40,
+                x1: 64,
+                y1: 48
+            }
+        );
+        let outside = Rect {
+            x0: 100,
+            y0: 100,
+            x1: 200,
+            y1: 200,
+        };
+        assert_eq!(s.locate(&img, outside), None);
+        assert_eq!(s.segment(&img, outside).needle_count(), 0);
     }
 
     #[test]

@@ -181,3 +181,60 @@ fn a_needle_lodged_in_tissue_is_found_through_its_holes() {
         .expect_err("too far apart");
     assert!(err.to_string().contains("cannot pass"), "{err}");
 }
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(48))]
+
+    /// Whatever the images hold — noise, grey blobs that look like needle, thread colours —
+    /// the pipeline answers with a pose or a typed failure, never a panic.
+    #[test]
+    fn arbitrary_images_never_panic(
+        seed in any::<u64>(),
+        blobs in 0usize..40,
+        grey in any::<bool>(),
+    ) {
+        let calib = stitch_robot::StereoCalibration {
+            fx: 200.0,
+            fy: 200.0,
+            cx: 80.0,
+            cy: 60.0,
+            baseline_m: 0.04,
+            width: 160,
+            height: 120,
+            camera_to_robot: Pose::identity(),
+        };
+        let p = NeedlePipeline::classical(calib, Needle::default()).expect("p");
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let mut image = || {
+            let mut img = stitch_robot::RgbImage::new(160, 120);
+            for v in img.data.iter_mut() {
+                *v = rng.random();
+            }
+            for _ in 0..blobs {
+                let (x, y) = (rng.random_range(0..160usize), rng.random_range(0..120usize));
+                let (w, h) = (rng.random_range(1..40usize), rng.random_range(1..6usize));
+                let c: [u8; 3] = if grey { [200, 200, 200] } else { [120, 60, 170] };
+                for yy in y..(y + h).min(120) {
+                    for xx in x..(x + w).min(160) {
+                        let i = (yy * 160 + xx) * 3;
+                        img.data[i..i + 3].copy_from_slice(&c);
+                    }
+                }
+            }
+            img
+        };
+        let (l, r) = (image(), image());
+        let _ = p.estimate(&l, &r, None, seed);
+        let hint = stitch_perception::JawHint {
+            jaw: Point::new(0.0, 0.0, 0.2),
+            end: stitch_perception::NeedleEnd::Swage,
+        };
+        let _ = p.estimate(&l, &r, Some(&hint), seed);
+        let holes = stitch_perception::TissueHint {
+            entry: Point::new(-0.005, 0.0, 0.2),
+            exit: Point::new(0.005, 0.0, 0.2),
+        };
+        let _ = p.estimate_in_tissue(&l, &r, &holes, seed);
+        let _ = p.disparity(&l, &r, None);
+    }
+}
