@@ -47,6 +47,9 @@ pub struct TrialsArgs {
     mock_config: Option<PathBuf>,
 }
 
+/// Most trials per policy one command runs (each writes a journal file).
+const MAX_TRIALS: usize = 100_000;
+
 /// A row of the paper's Table I.
 struct PaperRow {
     mean: f64,
@@ -81,8 +84,8 @@ fn paper_row(name: &str) -> Option<PaperRow> {
     }
 }
 
-/// One trial's outcome as a worker leaves it: the record and the journal's bytes.
-type TrialResult = anyhow::Result<(TrialRecord, Vec<u8>)>;
+/// One trial's outcome as a worker leaves it (its journal already written).
+type TrialResult = anyhow::Result<TrialRecord>;
 
 struct Policy {
     /// As given on the command line (file names use it).
@@ -93,8 +96,15 @@ struct Policy {
 }
 
 pub fn trials(args: TrialsArgs) -> anyhow::Result<u8> {
-    if args.trials == 0 {
-        anyhow::bail!("--trials must be at least 1");
+    if !(1..=MAX_TRIALS).contains(&args.trials) {
+        anyhow::bail!("--trials {}: expected 1 to {MAX_TRIALS}", args.trials);
+    }
+    if args.seed.checked_add(args.trials as u64).is_none() {
+        anyhow::bail!(
+            "--seed {} with --trials {}: the seeds would pass 2^64",
+            args.seed,
+            args.trials
+        );
     }
     if args.policies.is_empty() {
         anyhow::bail!("--policies names no policy");
@@ -174,9 +184,19 @@ pub fn trials(args: TrialsArgs) -> anyhow::Result<u8> {
                                     &policy.loaded.plan,
                                     &report,
                                 );
-                                let mut journal = Vec::new();
-                                report.journal.write_jsonl(&mut journal)?;
-                                Ok((record, journal))
+                                // Each journal goes to its file at once: memory holds only
+                                // the records, however many trials run.
+                                let path = args
+                                    .out
+                                    .join("journals")
+                                    .join(format!("{}-{seed}.jsonl", policy.key));
+                                let file = std::fs::File::create(&path)
+                                    .with_context(|| format!("cannot write {}", path.display()))?;
+                                report
+                                    .journal
+                                    .write_jsonl(std::io::BufWriter::new(file))
+                                    .with_context(|| format!("cannot write {}", path.display()))?;
+                                Ok(record)
                             });
                     results
                         .lock()
@@ -192,19 +212,13 @@ pub fn trials(args: TrialsArgs) -> anyhow::Result<u8> {
         .unwrap_or_else(std::sync::PoisonError::into_inner);
     let mut records: Vec<Vec<TrialRecord>> = policies.iter().map(|_| Vec::new()).collect();
     for (&(p, seed), r) in jobs.iter().zip(results) {
-        let (record, journal) = r.context("a trial did not run")?.with_context(|| {
+        let record = r.context("a trial did not run")?.with_context(|| {
             format!(
                 "trial {} of {} (seed {seed})",
                 seed - args.seed + 1,
                 policies[p].key
             )
         })?;
-        let path = args
-            .out
-            .join("journals")
-            .join(format!("{}-{seed}.jsonl", policies[p].key));
-        std::fs::write(&path, journal)
-            .with_context(|| format!("cannot write {}", path.display()))?;
         records[p].push(record);
     }
     let all: Vec<Metrics> = policies

@@ -135,6 +135,16 @@ fn bad_trial_arguments_are_refused_with_the_reason() {
         "{}",
         text(&out.stderr)
     );
+    let out = stitch(&["trials", "--trials", "1000000000", "--out", d]);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(
+        text(&out.stderr).contains("expected 1 to 100000"),
+        "{}",
+        text(&out.stderr)
+    );
+    let out = stitch(&["trials", "--seed", "18446744073709551615", "--out", d]);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(text(&out.stderr).contains("2^64"), "{}", text(&out.stderr));
     // An output "directory" that is a file.
     let file = dir("file");
     std::fs::write(&file, "x").expect("write");
