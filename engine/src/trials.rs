@@ -22,6 +22,7 @@
 use crate::journal::RunOutcome;
 use crate::plan::{FailureClass, Plan};
 use crate::runner::Report;
+use crate::supervisor::InterventionResult;
 use serde::{Deserialize, Serialize};
 use stitch_primitives::StepOutcome;
 
@@ -82,14 +83,19 @@ impl TrialRecord {
                     entry.extend(m.entry_error_m.map(|e| e * 1e3));
                     exit.extend(m.exit_error_m.map(|e| e * 1e3));
                 }
-                if a.intervention.is_some() {
-                    let class = match &a.outcome {
-                        StepOutcome::Failed(f) if f.kind.is_thread() => FailureClass::Thread,
-                        _ => plan.phase_class(t, a.step),
-                    };
-                    errors[class_index(class)] += 1;
+                if let Some(result) = a.intervention {
+                    // Every request counts for sutures to intervention; its error is counted
+                    // here if the trial went on, by the outcome if the intervention failed
+                    // and ended it.
                     before.push(since);
                     since = 0;
+                    if result == InterventionResult::Recovered {
+                        let class = match &a.outcome {
+                            StepOutcome::Failed(f) if f.kind.is_thread() => FailureClass::Thread,
+                            _ => plan.phase_class(t, a.step),
+                        };
+                        errors[class_index(class)] += 1;
+                    }
                 }
             }
             if throw.completed {

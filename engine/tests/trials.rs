@@ -87,3 +87,57 @@ fn wilson_and_t_intervals_match_published_values() {
     assert!((t95(14) - 2.145).abs() < 1e-9);
     assert!((t95(1000) - 1.962).abs() < 1e-3);
 }
+
+/// Runs a two-throw, insert-only plan (validation skipped: only the record's arithmetic is
+/// under test) against scripted outcomes and interventions.
+fn record_of(
+    outcomes: Vec<stitch_primitives::Scripted>,
+    interventions: Vec<stitch_engine::InterventionResult>,
+) -> TrialRecord {
+    use std::sync::Arc;
+    let wound = stitch_robot::Wound::linear(&stitch_robot::WoundSpec::default()).expect("wound");
+    let loader = stitch_engine::PlanLoader::new(&wound, stitch_engine::ScriptLimits::default());
+    let loaded = loader
+        .eval_str(
+            "t.rhai",
+            "let w = wound(); mission(#{ name: \"t\", interventions: 2, throws: [suture(w[0], [insert()]), suture(w[1], [insert()])] })",
+        )
+        .expect("plan");
+    let clock = stitch_robot::SimClock::new();
+    let mut primitives =
+        stitch_primitives::ScriptedPrimitives::from_schedule(outcomes, clock.clone());
+    let mut supervisor = stitch_engine::ScriptedSupervisor::new([], interventions);
+    let plan = Arc::new(loaded.plan.clone());
+    let report = stitch_engine::Runner::new(
+        Arc::clone(&plan),
+        &mut primitives,
+        &mut supervisor,
+        Arc::new(clock),
+        None,
+    )
+    .run();
+    TrialRecord::from_report("t", 0, &plan, &report)
+}
+
+#[test]
+fn records_count_each_error_once_and_every_intervention_request() {
+    use stitch_engine::InterventionResult::{Failed, Recovered};
+    use stitch_primitives::Scripted::{Fail, Ok};
+    // Throw 1 succeeds; throw 2's insertion fails, an intervention recovers, it fails
+    // again, the second intervention fails: the trial ends with I.
+    let r = record_of(vec![Ok, Fail, Fail], vec![Recovered, Failed]);
+    assert_eq!((r.sutures, r.outcome.as_str()), (1, "failed"));
+    assert_eq!(r.failure.as_deref(), Some("I"));
+    // One error the trial went on after, one that ended it: two, not three.
+    assert_eq!(r.errors, [2, 0, 0, 0]);
+    assert_eq!(r.attempts(), 3);
+    // Two requests, both after one suture and none since.
+    assert_eq!(r.sutures_before_interventions, vec![1, 0]);
+    // Every throw done after one recovered intervention.
+    let r = record_of(vec![Fail, Ok, Ok], vec![Recovered]);
+    assert_eq!(
+        (r.sutures, r.outcome.as_str(), r.errors),
+        (2, "completed", [1, 0, 0, 0])
+    );
+    assert_eq!(r.sutures_before_interventions, vec![0]);
+}
