@@ -1,6 +1,8 @@
 #![doc = include_str!("../README.md")]
 
 pub mod msg;
+#[cfg(feature = "ros2")]
+pub mod ros2;
 
 use serde::Serialize;
 use serde::de::DeserializeOwned;
