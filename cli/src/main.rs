@@ -292,15 +292,7 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
                     "--outcomes replays a schedule on the scripted robot: add --robot scripted"
                 );
             }
-            let mut mock = match &mock_config {
-                Some(path) => {
-                    let text = std::fs::read_to_string(path)
-                        .with_context(|| format!("cannot read {}", path.display()))?;
-                    toml::from_str::<MockConfig>(&text)
-                        .with_context(|| format!("invalid mock configuration {}", path.display()))?
-                }
-                None => MockConfig::default(),
-            };
+            let mut mock = read_mock_config(mock_config.as_deref())?;
             mock.scene.wound = wound.apply(mock.scene.wound.clone());
             let spec = mock.scene.wound.clone();
             let loaded = if skip_validation && robot == RobotKind::Scripted {
@@ -360,6 +352,17 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
             })
         }
     }
+}
+
+/// The mock configuration file, or the defaults without one.
+pub(crate) fn read_mock_config(path: Option<&Path>) -> anyhow::Result<MockConfig> {
+    let Some(path) = path else {
+        return Ok(MockConfig::default());
+    };
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
+    toml::from_str::<MockConfig>(&text)
+        .with_context(|| format!("invalid mock configuration {}", path.display()))
 }
 
 fn robot_name(robot: RobotKind) -> &'static str {

@@ -1,7 +1,7 @@
 //! `stitch trials`: the paper's ablation (Table I, Fig. 4) on the mock, in parallel, with
 //! every file written deterministically.
 
-use crate::{MockConfig, PerceptionKind, exit};
+use crate::{PerceptionKind, exit};
 use anyhow::Context;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -109,15 +109,7 @@ pub fn trials(args: TrialsArgs) -> anyhow::Result<u8> {
     if args.policies.is_empty() {
         anyhow::bail!("--policies names no policy");
     }
-    let mock = match &args.mock_config {
-        Some(path) => {
-            let text = std::fs::read_to_string(path)
-                .with_context(|| format!("cannot read {}", path.display()))?;
-            toml::from_str::<MockConfig>(&text)
-                .with_context(|| format!("invalid mock configuration {}", path.display()))?
-        }
-        None => MockConfig::default(),
-    };
+    let mock = crate::read_mock_config(args.mock_config.as_deref())?;
     let mut policies = Vec::new();
     for key in &args.policies {
         let path = if key.ends_with(".rhai") {
