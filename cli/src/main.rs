@@ -4,6 +4,8 @@
 mod mock;
 mod perceive;
 mod plot;
+#[cfg(feature = "ros2")]
+mod ros2;
 mod show;
 mod trials;
 
@@ -22,7 +24,7 @@ use stitch_robot::{SimClock, Wound, WoundSpec};
 use stitch_sim::{CameraConfig, SceneConfig, SensingConfig};
 
 /// Exit codes, documented in `--help` and `docs/cli.md`.
-mod exit {
+pub(crate) mod exit {
     /// The plan is valid (check), or the mission completed every throw (run).
     pub const OK: u8 = 0;
     /// Something outside the plan went wrong: a file could not be read or written.
@@ -110,6 +112,13 @@ enum Command {
         /// Print the final outcome as JSON instead of the timeline.
         #[arg(long)]
         json: bool,
+        /// The dVRK backend's settings (TOML: arms, timeouts, tolerances, stale bound, speed
+        /// ratio; see docs/dvrk.md) for --robot ros2.
+        #[arg(long)]
+        dvrk_config: Option<PathBuf>,
+        /// The ROS 2 domain for --robot ros2 (0 to 232) [default: $ROS_DOMAIN_ID, else 0].
+        #[arg(long)]
+        domain_id: Option<String>,
         /// Run the plan even if validation refuses it, to replay a counterexample that
         /// `stitch check --explore` found for an invalid plan. Scripted robot only: nothing
         /// moves. The validation errors are still printed.
@@ -128,6 +137,10 @@ enum Command {
     /// trial's record and journal, and the Fig. 4 histogram (see docs/experiments.md).
     #[command(after_help = EXIT_CODES)]
     Trials(trials::TrialsArgs),
+    /// Serve the mock dVRK over ROS 2 on the dVRK's CRTK topics (two PSMs and their jaws),
+    /// for `stitch run --robot ros2` on one machine (see docs/dvrk.md). Runs until killed.
+    #[cfg(feature = "ros2")]
+    SimNode(ros2::SimNodeArgs),
     /// Benchmarks: `stitch bench perception`.
     Bench {
         #[command(subcommand)]
@@ -189,6 +202,9 @@ enum RobotKind {
     /// Outcomes drawn from a seeded distribution (or replayed from --outcomes); moves
     /// nothing and simulates no geometry.
     Scripted,
+    /// A dVRK over ROS 2 (CRTK topics): `stitch sim-node` on this or another machine (see
+    /// docs/dvrk.md).
+    Ros2,
 }
 
 fn main() -> ExitCode {
@@ -207,6 +223,8 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
         Command::Perceive { command } => perceive::perceive(command),
         Command::Bench { command } => perceive::bench(command),
         Command::Trials(args) => trials::trials(args),
+        #[cfg(feature = "ros2")]
+        Command::SimNode(args) => ros2::sim_node(args),
         Command::Check {
             plan,
             explore: false,
@@ -286,6 +304,8 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
             wound,
             perception,
             mock_config,
+            dvrk_config,
+            domain_id,
         } => {
             if outcomes.is_some() && robot != RobotKind::Scripted {
                 anyhow::bail!(
@@ -308,8 +328,23 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
             let Some(loaded) = loaded else {
                 return Ok(exit::INVALID_PLAN);
             };
+            if robot != RobotKind::Ros2 && (dvrk_config.is_some() || domain_id.is_some()) {
+                anyhow::bail!("--dvrk-config and --domain-id are for --robot ros2");
+            }
             let report = match robot {
                 RobotKind::Scripted => run_scripted(&loaded, seed, outcomes.as_deref())?,
+                RobotKind::Ros2 => {
+                    let sensing = match perception {
+                        PerceptionKind::Model => mock.sensing,
+                        PerceptionKind::Perfect => SensingConfig::perfect(),
+                        PerceptionKind::Fitted => SensingConfig::fitted_to_pipeline(),
+                        PerceptionKind::Pipeline => anyhow::bail!(
+                            "--perception pipeline over ROS 2 needs the stereo camera over ROS \
+                             2, which is not built yet: use model, perfect or fitted"
+                        ),
+                    };
+                    run_ros2(&loaded, &mock.scene, sensing, seed, dvrk_config, domain_id)?
+                }
                 RobotKind::Mock => {
                     let perception = match perception {
                         PerceptionKind::Model => MockPerception::Model(mock.sensing),
@@ -369,7 +404,41 @@ fn robot_name(robot: RobotKind) -> &'static str {
     match robot {
         RobotKind::Mock => "the mock dVRK",
         RobotKind::Scripted => "the scripted robot",
+        RobotKind::Ros2 => "the dVRK over ROS 2",
     }
+}
+
+#[cfg(feature = "ros2")]
+fn run_ros2(
+    loaded: &Loaded,
+    scene: &SceneConfig,
+    sensing: SensingConfig,
+    seed: u64,
+    dvrk_config: Option<PathBuf>,
+    domain_id: Option<String>,
+) -> anyhow::Result<Report> {
+    let config = ros2::read_dvrk_config(dvrk_config.as_deref())?;
+    let ros = match domain_id {
+        Some(d) => stitch_dvrk::ros2::Ros2Options::domain(&d)
+            .map_err(|e| anyhow::anyhow!("--domain-id {d}: {e}"))?,
+        None => stitch_dvrk::ros2::Ros2Options::from_env().map_err(anyhow::Error::msg)?,
+    };
+    ros2::run_ros2(loaded, scene, sensing, seed, &ros, &config)
+}
+
+#[cfg(not(feature = "ros2"))]
+fn run_ros2(
+    _: &Loaded,
+    _: &SceneConfig,
+    _: SensingConfig,
+    _: u64,
+    _: Option<PathBuf>,
+    _: Option<String>,
+) -> anyhow::Result<Report> {
+    anyhow::bail!(
+        "--robot ros2: this stitch was built without the `ros2` feature; rebuild with \
+         `cargo build --release --features ros2`"
+    )
 }
 
 /// Load and validate; print plan errors one per line and return `None` if invalid.

@@ -7,19 +7,39 @@ use stitch_engine::{
 use stitch_primitives::StepKind;
 use stitch_sim::{MockDvrk, NeedlePlace};
 
+/// The recovery motion: readies the workspace with the needle at the given place, or says
+/// why it could not.
+pub type Recovery = Box<dyn FnMut(NeedlePlace) -> Result<(), String>>;
+
 /// Gives no commands; when the robot asks for help, performs one recovery motion that returns
 /// the workspace to a safe configuration for the failed step (`MockDvrk::recover`) and hands
 /// control back, as the paper's "STITCH + Human" supervisor does.
-#[derive(Debug)]
 pub struct MockSupervisor {
-    world: MockDvrk,
+    recover: Recovery,
     plan: Arc<Plan>,
+}
+
+impl std::fmt::Debug for MockSupervisor {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("MockSupervisor").finish_non_exhaustive()
+    }
 }
 
 impl MockSupervisor {
     /// A supervisor for `plan` on `world`.
     pub fn new(world: MockDvrk, plan: Arc<Plan>) -> Self {
-        Self { world, plan }
+        Self::with(
+            Box::new(move |needs| {
+                world.recover(needs);
+                Ok(())
+            }),
+            plan,
+        )
+    }
+
+    /// A supervisor for `plan` whose recovery motion is `recover` (the sim-node's, over ROS 2).
+    pub fn with(recover: Recovery, plan: Arc<Plan>) -> Self {
+        Self { recover, plan }
     }
 }
 
@@ -54,7 +74,12 @@ impl Supervisor for MockSupervisor {
                 _ => NeedlePlace::Right,
             },
         };
-        self.world.recover(needs);
-        InterventionResult::Recovered
+        match (self.recover)(needs) {
+            Ok(()) => InterventionResult::Recovered,
+            Err(e) => {
+                eprintln!("intervention failed: {e}");
+                InterventionResult::Failed
+            }
+        }
     }
 }

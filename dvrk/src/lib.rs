@@ -1,8 +1,14 @@
 #![doc = include_str!("../README.md")]
 
+#[cfg(feature = "ros2")]
+pub mod arm;
 pub mod msg;
 #[cfg(feature = "ros2")]
+pub mod oracle;
+#[cfg(feature = "ros2")]
 pub mod ros2;
+#[cfg(feature = "ros2")]
+pub mod sim_node;
 
 use serde::Serialize;
 use serde::de::DeserializeOwned;
@@ -95,9 +101,17 @@ pub fn pose_from_msg(m: &msg::PoseStamped) -> Result<stitch_robot::Pose, String>
         return Err(format!("quaternion of norm {norm:.4}, not a rotation"));
     }
     use stitch_robot::nalgebra::{Quaternion, Translation3, UnitQuaternion};
+    let q = Quaternion::new(q.w, q.x, q.y, q.z);
+    // A quaternion that was unit where it was sent is taken as it is, so a pose crosses the
+    // wire bit for bit; one a little off is normalised.
+    let rotation = if (norm - 1.0).abs() <= 1e-12 {
+        UnitQuaternion::new_unchecked(q)
+    } else {
+        UnitQuaternion::from_quaternion(q)
+    };
     Ok(stitch_robot::Pose::from_parts(
         Translation3::new(p.x, p.y, p.z),
-        UnitQuaternion::from_quaternion(Quaternion::new(q.w, q.x, q.y, q.z)),
+        rotation,
     ))
 }
 

@@ -198,3 +198,11 @@ pub struct CameraInfo {
     /// Region of interest.
     pub roi: RegionOfInterest,
 }
+
+/// `std_msgs/msg/Float64`: the dVRK's `trajectory_j/set_ratio` (the fraction, 0 to 1, of
+/// the arm's maximum joint speed and acceleration its trajectories use).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Float64 {
+    /// The value.
+    pub data: f64,
+}

@@ -1,0 +1,865 @@
+//! The CRTK arm and jaw backend over ROS 2: [`Ros2Dvrk::connect`] meets the dVRK's arms
+//! (`/PSM1`, `/PSM2`, ...), enables and homes them, and hands out [`Ros2Arm`]s and
+//! [`Ros2Jaw`]s behind the `robot/` traits.
+//!
+//! A `move_cp` is "busy rises, then falls" on the arm's latched `operating_state`, within a
+//! timeout, then a check that `measured_cp` ended within tolerance of the goal. Measurements
+//! with a zero stamp (CRTK's "invalid") or older than a bound are refused; every `error` the
+//! dVRK publishes fails the command under way (and the next one). A motion that fails is
+//! stopped with `hold`.
+
+use crate::msg::{self, Empty, Float64, JointState, OperatingState, PoseStamped, StringStamped};
+use crate::ros2::{Bus, Matched, Ros2Options, Topic, latched_qos, now_stamp, stream_qos, types};
+use serde::{Deserialize, Serialize};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError};
+use std::time::{Duration, Instant};
+use stitch_robot::{Arm, Jaw, MotionTracker, MoveHandle, Pose, RobotError};
+
+/// How the backend meets the dVRK and what it accepts. Times in seconds, SI units.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct DvrkConfig {
+    /// The arms' namespaces: the right needle driver first, then the left.
+    pub arms: [String; 2],
+    /// How long to wait for the dVRK to match every command topic and publish its state.
+    pub connect_timeout_s: f64,
+    /// How long enabling and homing may take.
+    pub state_timeout_s: f64,
+    /// How long a move may take to report busy after it was sent.
+    pub busy_rise_timeout_s: f64,
+    /// How long a move may stay busy.
+    pub move_timeout_s: f64,
+    /// How long after busy falls the measured pose may take to reach the goal's tolerance.
+    pub settle_timeout_s: f64,
+    /// Measurements older than this (by stamp, or since they arrived) are refused.
+    pub stale_after_s: f64,
+    /// Distance from the goal a finished move may end at, m.
+    pub position_tolerance_m: f64,
+    /// Angle from the goal a finished move may end at, rad.
+    pub rotation_tolerance_rad: f64,
+    /// Angle short of the goal an opening jaw may stop at, rad (a closing jaw stops on what
+    /// it grasps, so closing is not checked).
+    pub jaw_tolerance_rad: f64,
+    /// `trajectory_j/set_ratio` sent at start: the fraction of the arm's top joint speed its
+    /// trajectories use (low at a bench: 0.2).
+    pub speed_ratio: f64,
+}
+
+impl Default for DvrkConfig {
+    fn default() -> Self {
+        Self {
+            arms: ["PSM1".into(), "PSM2".into()],
+            connect_timeout_s: 15.0,
+            state_timeout_s: 60.0,
+            busy_rise_timeout_s: 1.0,
+            move_timeout_s: 30.0,
+            settle_timeout_s: 0.5,
+            stale_after_s: 0.25,
+            position_tolerance_m: 0.002,
+            rotation_tolerance_rad: 2f64.to_radians(),
+            jaw_tolerance_rad: 5f64.to_radians(),
+            speed_ratio: 0.2,
+        }
+    }
+}
+
+impl DvrkConfig {
+    /// Refuse values the backend cannot use, naming them.
+    pub fn validate(&self) -> Result<(), RobotError> {
+        let bad = |what: &str, why: String| {
+            Err(RobotError::InvalidConfig {
+                what: format!("dvrk.{what}"),
+                why,
+            })
+        };
+        for (name, v) in [
+            ("connect_timeout_s", self.connect_timeout_s),
+            ("state_timeout_s", self.state_timeout_s),
+            ("busy_rise_timeout_s", self.busy_rise_timeout_s),
+            ("move_timeout_s", self.move_timeout_s),
+            ("settle_timeout_s", self.settle_timeout_s),
+            ("stale_after_s", self.stale_after_s),
+        ] {
+            if !(v.is_finite() && v > 0.0 && v <= 3600.0) {
+                return bad(name, format!("{v}; expected 0 to 3600 s"));
+            }
+        }
+        for (name, v, max) in [
+            ("position_tolerance_m", self.position_tolerance_m, 0.02),
+            ("rotation_tolerance_rad", self.rotation_tolerance_rad, 0.5),
+            ("jaw_tolerance_rad", self.jaw_tolerance_rad, 0.5),
+        ] {
+            if !(v.is_finite() && v > 0.0 && v <= max) {
+                return bad(name, format!("{v}; expected above 0, at most {max}"));
+            }
+        }
+        if !(self.speed_ratio.is_finite() && self.speed_ratio > 0.0 && self.speed_ratio <= 1.0) {
+            return bad(
+                "speed_ratio",
+                format!("{}; expected above 0, at most 1", self.speed_ratio),
+            );
+        }
+        for a in &self.arms {
+            if crate::ros2::topic_name(&format!("/{a}/measured_cp")).is_err() {
+                return bad("arms", format!("{a:?} is not a ROS 2 namespace"));
+            }
+        }
+        Ok(())
+    }
+}
+
+fn secs(s: f64) -> Duration {
+    Duration::from_secs_f64(s)
+}
+
+/// What one arm has said, as the bus thread received it.
+#[derive(Debug, Default)]
+struct Heard {
+    measured: Option<(PoseStamped, Instant)>,
+    setpoint: Option<(PoseStamped, Instant)>,
+    jaw: Option<(JointState, Instant)>,
+    state: Option<OperatingState>,
+    /// Operating states received so far.
+    state_seq: u64,
+    /// `state_seq` of the last busy one.
+    busy_seq: u64,
+    /// Every `error` message, in order.
+    errors: Vec<String>,
+    /// Errors already reported by a failed command.
+    errors_reported: usize,
+    /// The last message that could not be read.
+    unreadable: Option<String>,
+}
+
+#[derive(Debug)]
+struct ArmLink {
+    name: String,
+    config: DvrkConfig,
+    heard: Mutex<Heard>,
+    changed: Condvar,
+    move_cp: Topic<PoseStamped>,
+    servo_cp: Topic<PoseStamped>,
+    hold: Topic<Empty>,
+    state_command: Topic<StringStamped>,
+    jaw_move_jp: Topic<JointState>,
+    set_ratio: Topic<Float64>,
+}
+
+impl ArmLink {
+    fn heard(&self) -> MutexGuard<'_, Heard> {
+        self.heard.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    /// Wait on `changed` until `done` says something, at most until `deadline`.
+    fn wait_until<T>(
+        &self,
+        deadline: Instant,
+        mut done: impl FnMut(&Heard) -> Option<T>,
+    ) -> Option<T> {
+        let mut heard = self.heard();
+        loop {
+            if let Some(v) = done(&heard) {
+                return Some(v);
+            }
+            let now = Instant::now();
+            if now >= deadline {
+                return None;
+            }
+            // Wake at least every 20 ms: staleness is judged by the clock, not by messages.
+            let wait = (deadline - now).min(Duration::from_millis(20));
+            heard = self
+                .changed
+                .wait_timeout(heard, wait)
+                .unwrap_or_else(PoisonError::into_inner)
+                .0;
+        }
+    }
+
+    fn fault(&self, message: String) -> RobotError {
+        RobotError::Fault {
+            arm: self.name.clone(),
+            message,
+        }
+    }
+
+    /// An `error` the dVRK published and no command has reported yet, or a FAULT state.
+    fn new_error(&self, heard: &mut Heard) -> Option<RobotError> {
+        if heard.errors.len() > heard.errors_reported {
+            let text = heard.errors[heard.errors_reported..].join("; ");
+            heard.errors_reported = heard.errors.len();
+            return Some(self.fault(format!("the dVRK reported: {text}")));
+        }
+        match &heard.state {
+            Some(s) if s.state == "FAULT" => {
+                Some(self.fault("the arm is in FAULT (operating_state); re-enable it".into()))
+            }
+            _ => None,
+        }
+    }
+
+    /// The arm must be enabled and homed, with no unreported error, to take a command.
+    fn ready(&self) -> Result<(), RobotError> {
+        let mut heard = self.heard();
+        if let Some(e) = self.new_error(&mut heard) {
+            return Err(e);
+        }
+        match &heard.state {
+            Some(s) if s.state == "ENABLED" && s.is_homed => Ok(()),
+            Some(s) => Err(self.fault(format!(
+                "the arm is {} (homed: {}); it takes commands only ENABLED and homed",
+                s.state, s.is_homed
+            ))),
+            None => Err(self.fault("no operating_state heard from the dVRK".into())),
+        }
+    }
+
+    /// A fresh measurement, refused when invalid or stale.
+    fn fresh<'a, T>(
+        &self,
+        what: &str,
+        m: &'a Option<(T, Instant)>,
+        stamp: impl Fn(&T) -> msg::Time,
+    ) -> Result<&'a T, RobotError> {
+        let Some((msg, at)) = m else {
+            return Err(self.fault(format!("no {what} received from the dVRK")));
+        };
+        let stamp = stamp(msg);
+        if stamp.is_zero() {
+            return Err(self.fault(format!(
+                "{what} has a zero stamp: the dVRK marks invalid data so"
+            )));
+        }
+        let age_s = crate::ros2::stamp_age_s(&stamp).max(at.elapsed().as_secs_f64());
+        if age_s > self.config.stale_after_s {
+            return Err(RobotError::Stale {
+                arm: self.name.clone(),
+                age_s,
+            });
+        }
+        Ok(msg)
+    }
+
+    fn measured_cp(&self) -> Result<Pose, RobotError> {
+        let heard = self.heard();
+        let m = self.fresh("measured_cp", &heard.measured, |m| m.header.stamp)?;
+        crate::pose_from_msg(m).map_err(|e| self.fault(format!("measured_cp: {e}")))
+    }
+
+    fn measured_jaw(&self) -> Result<f64, RobotError> {
+        let heard = self.heard();
+        let m = self.fresh("jaw/measured_js", &heard.jaw, |m| m.header.stamp)?;
+        match m.position.first() {
+            Some(v) if v.is_finite() => Ok(*v),
+            _ => Err(self.fault(format!(
+                "jaw/measured_js has no finite position ({:?})",
+                m.position
+            ))),
+        }
+    }
+
+    fn stamp() -> msg::Header {
+        msg::Header {
+            stamp: now_stamp(),
+            frame_id: String::new(),
+        }
+    }
+
+    fn hold(&self) -> Result<(), RobotError> {
+        self.hold
+            .publish(Empty::default())
+            .map_err(|e| self.fault(e))
+    }
+
+    fn command_state(&self, command: &str) -> Result<(), RobotError> {
+        self.state_command
+            .publish(StringStamped {
+                header: Self::stamp(),
+                string: command.into(),
+            })
+            .map_err(|e| self.fault(e))
+    }
+}
+
+/// The dVRK over ROS 2: the bus and every arm it met.
+#[derive(Debug)]
+pub struct Ros2Dvrk {
+    links: Vec<Arc<ArmLink>>,
+    bus: Arc<Bus>,
+}
+
+impl Ros2Dvrk {
+    /// Meet the arms on `options`' domain: subscribe to their state (`operating_state`
+    /// reliable and transient-local), wait until the dVRK has matched every command topic
+    /// (a command sent earlier is silently lost), enable and home each arm, waiting on its
+    /// operating state, set the trajectory speed ratio, and wait for a fresh `measured_cp`.
+    pub fn connect(options: &Ros2Options, config: &DvrkConfig) -> Result<Self, RobotError> {
+        config.validate()?;
+        let setup = |why: String| RobotError::Fault {
+            arm: "ROS 2".into(),
+            message: why,
+        };
+        let mut bus = Bus::new(options, "engine").map_err(setup)?;
+        let mut links = Vec::new();
+        for arm in &config.arms {
+            links.push(link_and_listen(&mut bus, arm, config).map_err(setup)?);
+        }
+        let bus = Arc::new(bus);
+        let deadline = Instant::now() + secs(config.connect_timeout_s);
+        for l in &links {
+            let topics: [(&str, &dyn Matched); 6] = [
+                (l.move_cp.name(), &l.move_cp),
+                (l.servo_cp.name(), &l.servo_cp),
+                (l.hold.name(), &l.hold),
+                (l.state_command.name(), &l.state_command),
+                (l.jaw_move_jp.name(), &l.jaw_move_jp),
+                (l.set_ratio.name(), &l.set_ratio),
+            ];
+            let left = deadline.saturating_duration_since(Instant::now());
+            let missing = bus.wait_matched(&topics, left);
+            if !missing.is_empty() {
+                return Err(l.fault(format!(
+                    "no dVRK subscribed to {} within {} s on ROS_DOMAIN_ID {} ({}): is the dVRK \
+                     console (or `stitch sim-node`) running on this domain, reachable, and of a \
+                     compatible ROS 2 distribution?",
+                    missing.join(", "),
+                    config.connect_timeout_s,
+                    options.domain_id,
+                    crate::ros2::DISTRIBUTION
+                )));
+            }
+            if l.wait_until(deadline, |h| h.state.clone()).is_none() {
+                return Err(l.fault(format!(
+                    "no operating_state from /{} within {} s",
+                    l.name, config.connect_timeout_s
+                )));
+            }
+        }
+        for l in &links {
+            bring_up(l)?;
+            l.set_ratio
+                .publish(Float64 {
+                    data: config.speed_ratio,
+                })
+                .map_err(|e| l.fault(e))?;
+            let deadline = Instant::now() + secs(config.connect_timeout_s);
+            let fresh = l.wait_until(deadline, |h| {
+                h.measured
+                    .as_ref()
+                    .filter(|(m, at)| {
+                        !m.header.stamp.is_zero()
+                            && at.elapsed().as_secs_f64() <= config.stale_after_s
+                    })
+                    .map(|_| ())
+            });
+            if fresh.is_none() {
+                return Err(l.fault(format!(
+                    "no fresh measured_cp from /{} within {} s",
+                    l.name, config.connect_timeout_s
+                )));
+            }
+        }
+        Ok(Self { links, bus })
+    }
+
+    /// The arm `i` of the configuration's list (0: the right needle driver).
+    pub fn arm(&self, i: usize) -> Option<Ros2Arm> {
+        self.links.get(i).map(|l| Ros2Arm {
+            link: Arc::clone(l),
+            _bus: Arc::clone(&self.bus),
+        })
+    }
+
+    /// The jaw of arm `i`.
+    pub fn jaw(&self, i: usize) -> Option<Ros2Jaw> {
+        self.links.get(i).map(|l| Ros2Jaw {
+            name: format!("{}/jaw", l.name),
+            link: Arc::clone(l),
+            _bus: Arc::clone(&self.bus),
+        })
+    }
+
+    /// Wait until every arm's `measured_cp` and `jaw/measured_js` stamped after now have
+    /// arrived: after something moved the arms outside a motion command (a simulator's reset
+    /// or a surgeon's recovery), so no reading from before is acted on.
+    pub fn wait_fresh(&self, timeout: Duration) -> Result<(), RobotError> {
+        let since = now_stamp().as_secs_f64();
+        let deadline = Instant::now() + timeout;
+        for l in &self.links {
+            let newer = |t: &msg::Time| !t.is_zero() && t.as_secs_f64() >= since;
+            let got = l.wait_until(deadline, |h| {
+                let m = h
+                    .measured
+                    .as_ref()
+                    .is_some_and(|(m, _)| newer(&m.header.stamp));
+                let j = h.jaw.as_ref().is_some_and(|(m, _)| newer(&m.header.stamp));
+                (m && j).then_some(())
+            });
+            if got.is_none() {
+                return Err(l.fault(format!(
+                    "no new measured_cp and jaw/measured_js within {:.1} s",
+                    timeout.as_secs_f64()
+                )));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Enable, then home, waiting on the operating state each time.
+fn bring_up(l: &ArmLink) -> Result<(), RobotError> {
+    let timeout = l.config.state_timeout_s;
+    let step = |command: &str, reached: &dyn Fn(&OperatingState) -> bool| {
+        let already = l.heard().state.as_ref().is_some_and(reached);
+        if already {
+            return Ok(());
+        }
+        l.command_state(command)?;
+        let deadline = Instant::now() + secs(timeout);
+        let got = l.wait_until(deadline, |h| {
+            if let Some(e) = h.errors.get(h.errors_reported..).filter(|e| !e.is_empty()) {
+                return Some(Err(e.join("; ")));
+            }
+            h.state
+                .as_ref()
+                .filter(|s| reached(s) && !s.is_busy)
+                .map(|_| Ok(()))
+        });
+        match got {
+            Some(Ok(())) => Ok(()),
+            Some(Err(e)) => Err(l.fault(format!("{command}: the dVRK reported: {e}"))),
+            None => {
+                let state = l.heard().state.clone();
+                Err(l.fault(format!(
+                    "{command}: not done within {timeout} s (operating state {state:?})"
+                )))
+            }
+        }
+    };
+    step("enable", &|s| s.state == "ENABLED")?;
+    step("home", &|s| s.state == "ENABLED" && s.is_homed)
+}
+
+fn link(bus: &mut Bus, arm: &str, config: &DvrkConfig) -> Result<ArmLink, String> {
+    let t = |topic: &str| format!("/{arm}/{topic}");
+    let link = ArmLink {
+        name: arm.to_string(),
+        config: config.clone(),
+        heard: Mutex::new(Heard::default()),
+        changed: Condvar::new(),
+        move_cp: bus.publisher(&t("move_cp"), types::POSE_STAMPED, &stream_qos())?,
+        servo_cp: bus.publisher(&t("servo_cp"), types::POSE_STAMPED, &stream_qos())?,
+        hold: bus.publisher(&t("hold"), types::EMPTY, &stream_qos())?,
+        state_command: bus.publisher(&t("state_command"), types::STRING_STAMPED, &stream_qos())?,
+        jaw_move_jp: bus.publisher(&t("jaw/move_jp"), types::JOINT_STATE, &stream_qos())?,
+        set_ratio: bus.publisher(&t("trajectory_j/set_ratio"), types::FLOAT64, &stream_qos())?,
+    };
+    Ok(link)
+}
+
+/// Subscribe `link`'s state topics; the handlers update what it heard.
+fn listen(bus: &mut Bus, link: &Arc<ArmLink>) -> Result<(), String> {
+    let arm = link.name.clone();
+    let t = |topic: &str| format!("/{arm}/{topic}");
+    fn on<M: Send + 'static>(
+        link: &Arc<ArmLink>,
+        apply: impl Fn(&mut Heard, M) + Send + 'static,
+    ) -> impl FnMut(Result<M, String>) + Send + 'static {
+        let link = Arc::clone(link);
+        move |r| {
+            {
+                let mut heard = link.heard();
+                match r {
+                    Ok(m) => apply(&mut heard, m),
+                    Err(e) => heard.unreadable = Some(e),
+                }
+            }
+            link.changed.notify_all();
+        }
+    }
+    bus.subscribe(
+        &t("measured_cp"),
+        types::POSE_STAMPED,
+        &stream_qos(),
+        on(link, |h, m: PoseStamped| {
+            h.measured = Some((m, Instant::now()))
+        }),
+    )?;
+    bus.subscribe(
+        &t("setpoint_cp"),
+        types::POSE_STAMPED,
+        &stream_qos(),
+        on(link, |h, m: PoseStamped| {
+            h.setpoint = Some((m, Instant::now()))
+        }),
+    )?;
+    bus.subscribe(
+        &t("jaw/measured_js"),
+        types::JOINT_STATE,
+        &stream_qos(),
+        on(link, |h, m: JointState| h.jaw = Some((m, Instant::now()))),
+    )?;
+    bus.subscribe(
+        &t("operating_state"),
+        types::OPERATING_STATE,
+        &latched_qos(),
+        on(link, |h, m: OperatingState| {
+            h.state_seq += 1;
+            if m.is_busy {
+                h.busy_seq = h.state_seq;
+            }
+            h.state = Some(m);
+        }),
+    )?;
+    bus.subscribe(
+        &t("error"),
+        types::STRING,
+        &stream_qos(),
+        on(link, |h, m: msg::StringMsg| h.errors.push(m.data)),
+    )?;
+    Ok(())
+}
+
+// `link` builds the publishers, `listen` the subscriptions; both before the bus is shared.
+fn link_and_listen(bus: &mut Bus, arm: &str, config: &DvrkConfig) -> Result<Arc<ArmLink>, String> {
+    let l = Arc::new(link(bus, arm, config)?);
+    listen(bus, &l)?;
+    Ok(l)
+}
+
+/// What a tracked motion is for.
+#[derive(Clone, Copy, Debug)]
+enum Goal {
+    Pose(Pose),
+    Jaw { angle_rad: f64, opening: bool },
+}
+
+/// One motion: the operating-state messages before it was sent, when it was sent, its goal.
+#[derive(Debug)]
+struct Motion {
+    link: Arc<ArmLink>,
+    goal: Goal,
+    state_seq: u64,
+    sent_stamp: f64,
+    sent: Instant,
+    done: Mutex<Option<Result<(), RobotError>>>,
+}
+
+impl Motion {
+    fn start(link: &Arc<ArmLink>, goal: Goal) -> Self {
+        let state_seq = link.heard().state_seq;
+        Self {
+            link: Arc::clone(link),
+            goal,
+            state_seq,
+            sent_stamp: now_stamp().as_secs_f64(),
+            sent: Instant::now(),
+            done: Mutex::new(None),
+        }
+    }
+
+    /// Whether a measurement stamped at or after `idle_s` (the idle state's stamp) is at the
+    /// goal.
+    fn within(&self, heard: &Heard, idle_s: f64) -> Option<Result<(), String>> {
+        let c = &self.link.config;
+        match self.goal {
+            Goal::Pose(goal) => {
+                let (m, at) = heard.measured.as_ref()?;
+                if *at < self.sent
+                    || m.header.stamp.is_zero()
+                    || m.header.stamp.as_secs_f64() < idle_s
+                {
+                    return None;
+                }
+                let pose = match crate::pose_from_msg(m) {
+                    Ok(p) => p,
+                    Err(e) => return Some(Err(format!("measured_cp: {e}"))),
+                };
+                let d = (pose.translation.vector - goal.translation.vector).norm();
+                let a = pose.rotation.angle_to(&goal.rotation);
+                (d <= c.position_tolerance_m && a <= c.rotation_tolerance_rad).then_some(Ok(()))
+            }
+            Goal::Jaw { angle_rad, opening } => {
+                let (m, at) = heard.jaw.as_ref()?;
+                if *at < self.sent
+                    || m.header.stamp.is_zero()
+                    || m.header.stamp.as_secs_f64() < idle_s
+                {
+                    return None;
+                }
+                let v = *m.position.first()?;
+                (!opening || v >= angle_rad - c.jaw_tolerance_rad).then_some(Ok(()))
+            }
+        }
+    }
+
+    fn describe_miss(&self, heard: &Heard) -> String {
+        match self.goal {
+            Goal::Pose(goal) => match heard
+                .measured
+                .as_ref()
+                .map(|(m, _)| crate::pose_from_msg(m))
+            {
+                Some(Ok(p)) => format!(
+                    "ended {:.2} mm and {:.2}° from the goal (tolerance {:.2} mm, {:.2}°)",
+                    (p.translation.vector - goal.translation.vector).norm() * 1e3,
+                    p.rotation.angle_to(&goal.rotation).to_degrees(),
+                    self.link.config.position_tolerance_m * 1e3,
+                    self.link.config.rotation_tolerance_rad.to_degrees()
+                ),
+                Some(Err(e)) => format!("measured_cp: {e}"),
+                None => "no measured_cp".into(),
+            },
+            Goal::Jaw { angle_rad, .. } => format!(
+                "jaw at {:?} rad, goal {angle_rad:.3} rad",
+                heard.jaw.as_ref().map(|(m, _)| m.position.clone())
+            ),
+        }
+    }
+
+    /// Busy up, then down, within the timeouts; then the goal within tolerance.
+    fn run(&self, timeout: Duration) -> Result<(), RobotError> {
+        let l = &self.link;
+        let c = &l.config;
+        let what = match self.goal {
+            Goal::Pose(_) => "move_cp",
+            Goal::Jaw { .. } => "jaw/move_jp",
+        };
+        // 1. Busy rises (or a newer idle state already reports the move done), unless an
+        //    error comes first.
+        let rise = self.sent + secs(c.busy_rise_timeout_s);
+        let rose = l.wait_until(rise, |h| {
+            if h.errors.len() > h.errors_reported
+                || h.state.as_ref().is_some_and(|s| s.state == "FAULT")
+            {
+                return Some(Err(()));
+            }
+            let newer = h.state_seq > self.state_seq;
+            let busy = h.busy_seq > self.state_seq;
+            let idle_after = h
+                .state
+                .as_ref()
+                .filter(|s| newer && !s.is_busy && s.header.stamp.as_secs_f64() >= self.sent_stamp);
+            match (busy, idle_after) {
+                (_, Some(s)) => Some(Ok(Some(s.header.stamp.as_secs_f64()))),
+                (true, None) => Some(Ok(None)),
+                _ => None,
+            }
+        });
+        let idle_already = match rose {
+            Some(Ok(idle)) => idle,
+            Some(Err(())) => {
+                let e = l.new_error(&mut l.heard());
+                return Err(e.unwrap_or_else(|| l.fault(format!("{what}: failed"))));
+            }
+            None => {
+                // No busy at all: done only if already there (a move to where it is).
+                let heard = l.heard();
+                if self.within(&heard, 0.0).is_some_and(|r| r.is_ok()) {
+                    return Ok(());
+                }
+                let miss = self.describe_miss(&heard);
+                drop(heard);
+                let _ = l.hold();
+                return Err(l.fault(format!(
+                    "{what}: the arm never reported busy within {} s and is not at the goal \
+                     ({miss}): the command was lost or refused; holding",
+                    c.busy_rise_timeout_s
+                )));
+            }
+        };
+        // 2. Busy falls.
+        let limit = timeout.min(secs(c.move_timeout_s));
+        let fall = self.sent + limit;
+        let fell = match idle_already {
+            Some(idle) => Some(Ok(idle)),
+            None => l.wait_until(fall, |h| {
+                if h.errors.len() > h.errors_reported
+                    || h.state.as_ref().is_some_and(|s| s.state == "FAULT")
+                {
+                    return Some(Err(()));
+                }
+                h.state
+                    .as_ref()
+                    .filter(|s| !s.is_busy)
+                    .map(|s| Ok(s.header.stamp.as_secs_f64()))
+            }),
+        };
+        let idle_s = match fell {
+            Some(Ok(idle)) => idle,
+            Some(Err(())) => {
+                let _ = l.hold();
+                let e = l.new_error(&mut l.heard());
+                return Err(e.unwrap_or_else(|| l.fault(format!("{what}: failed"))));
+            }
+            None => {
+                let _ = l.hold();
+                return Err(RobotError::Timeout {
+                    arm: l.name.clone(),
+                    after_s: limit.as_secs_f64(),
+                });
+            }
+        };
+        // 3. A measurement taken after the arm went idle is at the goal (measurements and
+        //    states travel on different topics: either may arrive first).
+        let settle = Instant::now() + secs(c.settle_timeout_s);
+        let settled = l.wait_until(settle, |h| self.within(h, idle_s));
+        match settled {
+            Some(Ok(())) => Ok(()),
+            Some(Err(e)) => Err(l.fault(format!("{what}: {e}"))),
+            None => {
+                let heard = l.heard();
+                // Say stale or invalid data for what it is.
+                let fresh = match self.goal {
+                    Goal::Pose(_) => l
+                        .fresh("measured_cp", &heard.measured, |m| m.header.stamp)
+                        .map(|_| ()),
+                    Goal::Jaw { .. } => l
+                        .fresh("jaw/measured_js", &heard.jaw, |m| m.header.stamp)
+                        .map(|_| ()),
+                };
+                fresh?;
+                Err(l.fault(format!(
+                    "{what}: busy fell but the arm {}",
+                    self.describe_miss(&heard)
+                )))
+            }
+        }
+    }
+}
+
+impl MotionTracker for Motion {
+    fn is_busy(&self) -> bool {
+        self.done
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .is_none()
+    }
+
+    fn wait(&self, timeout: Duration) -> Result<(), RobotError> {
+        let mut done = self.done.lock().unwrap_or_else(PoisonError::into_inner);
+        if let Some(r) = done.as_ref() {
+            return r.clone();
+        }
+        let r = self.run(timeout);
+        *done = Some(r.clone());
+        r
+    }
+
+    fn stop(&self) -> Result<(), RobotError> {
+        self.link.hold()
+    }
+}
+
+/// One dVRK arm (a PSM) over ROS 2.
+#[derive(Debug, Clone)]
+pub struct Ros2Arm {
+    link: Arc<ArmLink>,
+    _bus: Arc<Bus>,
+}
+
+impl Arm for Ros2Arm {
+    fn name(&self) -> &str {
+        &self.link.name
+    }
+
+    fn measured_cp(&self) -> Result<Pose, RobotError> {
+        self.link.measured_cp()
+    }
+
+    fn setpoint_cp(&self) -> Result<Pose, RobotError> {
+        let heard = self.link.heard();
+        let m = self
+            .link
+            .fresh("setpoint_cp", &heard.setpoint, |m| m.header.stamp)?;
+        crate::pose_from_msg(m).map_err(|e| self.link.fault(format!("setpoint_cp: {e}")))
+    }
+
+    fn move_cp(&self, goal: &Pose) -> Result<MoveHandle, RobotError> {
+        check_finite(&self.link.name, goal)?;
+        self.link.ready()?;
+        let motion = Motion::start(&self.link, Goal::Pose(*goal));
+        self.link
+            .move_cp
+            .publish(crate::pose_to_msg(goal, now_stamp(), ""))
+            .map_err(|e| self.link.fault(e))?;
+        Ok(MoveHandle::new(Arc::new(motion)))
+    }
+
+    fn servo_cp(&self, goal: &Pose) -> Result<(), RobotError> {
+        check_finite(&self.link.name, goal)?;
+        self.link.ready()?;
+        self.link
+            .servo_cp
+            .publish(crate::pose_to_msg(goal, now_stamp(), ""))
+            .map_err(|e| self.link.fault(e))
+    }
+
+    fn hold(&self) -> Result<(), RobotError> {
+        self.link.hold()
+    }
+}
+
+fn check_finite(arm: &str, goal: &Pose) -> Result<(), RobotError> {
+    let ok = goal.translation.vector.iter().all(|v| v.is_finite())
+        && goal
+            .rotation
+            .quaternion()
+            .coords
+            .iter()
+            .all(|v| v.is_finite());
+    if ok {
+        Ok(())
+    } else {
+        Err(RobotError::NonFinite {
+            arm: arm.into(),
+            what: "goal pose".into(),
+        })
+    }
+}
+
+/// One PSM's jaw over ROS 2 (`jaw/move_jp`, `jaw/measured_js`).
+#[derive(Debug, Clone)]
+pub struct Ros2Jaw {
+    name: String,
+    link: Arc<ArmLink>,
+    _bus: Arc<Bus>,
+}
+
+impl Jaw for Ros2Jaw {
+    fn name(&self) -> &str {
+        &self.name
+    }
+
+    fn measured_jp(&self) -> Result<f64, RobotError> {
+        self.link.measured_jaw()
+    }
+
+    fn move_jp(&self, angle_rad: f64) -> Result<MoveHandle, RobotError> {
+        if !angle_rad.is_finite() {
+            return Err(RobotError::NonFinite {
+                arm: self.name.clone(),
+                what: "jaw angle".into(),
+            });
+        }
+        self.link.ready()?;
+        let before = self.link.measured_jaw()?;
+        let motion = Motion::start(
+            &self.link,
+            Goal::Jaw {
+                angle_rad,
+                opening: angle_rad > before,
+            },
+        );
+        self.link
+            .jaw_move_jp
+            .publish(JointState {
+                header: ArmLink::stamp(),
+                name: vec!["jaw".into()],
+                position: vec![angle_rad],
+                velocity: vec![],
+                effort: vec![],
+            })
+            .map_err(|e| self.link.fault(e))?;
+        Ok(MoveHandle::new(Arc::new(motion)))
+    }
+}

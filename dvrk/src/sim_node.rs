@@ -1,0 +1,739 @@
+//! `stitch sim-node`: the mock dVRK served over the dVRK's own CRTK topics on ROS 2, so a
+//! mission runs over real DDS on one machine exactly as it would against a dVRK console.
+//!
+//! Per arm (`/PSM1`, `/PSM2`) it publishes `measured_cp`, `setpoint_cp` and `jaw/measured_js`
+//! at a fixed rate (100 Hz by default, and at once after every motion), `operating_state`
+//! (latched, on every change) and `error`; it takes `move_cp`, `servo_cp`, `jaw/move_jp`,
+//! `hold`, `state_command` and `trajectory_j/set_ratio`. Arms start DISABLED and unhomed, as
+//! a console does. A motion runs in the mock at once and is reported busy for its simulated
+//! duration divided by the time scale (so missions run faster than real time), then idle.
+//! Beside the CRTK topics it answers the simulator's side channel ([`crate::oracle`]).
+//!
+//! Wire faults ([`WireFault`]) make it misbehave as a dVRK can: publish an error and go to
+//! FAULT, stay busy, stamp its measurements stale or zero, or drop a command.
+
+use crate::msg::{self, Empty, Float64, JointState, OperatingState, PoseStamped, StringMsg};
+use crate::oracle::{self, Answer, Call, Reply, Request, WireEstimate, WirePass};
+use crate::ros2::{Bus, Ros2Options, Topic, latched_qos, now_stamp, stream_qos, types};
+use std::collections::VecDeque;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender};
+use std::sync::{Arc, Mutex, PoisonError};
+use std::time::{Duration, Instant};
+use stitch_perception::{ModelEstimator, NeedleEstimator};
+use stitch_primitives::{MockObserver, Observer};
+use stitch_robot::{Arm, Clock, Jaw, Pose, SimClock};
+use stitch_sim::{MockDvrk, SceneConfig, SensingConfig, Side, Streams};
+
+/// A way for the sim-node to misbehave, at the n-th motion command (`move_cp` or
+/// `jaw/move_jp`, both arms counted together, 1-based).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct WireFault {
+    /// What goes wrong.
+    pub kind: WireFaultKind,
+    /// At which motion command.
+    pub nth: u32,
+}
+
+/// What goes wrong over the wire.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum WireFaultKind {
+    /// Publish an `error` and go to FAULT instead of moving.
+    ArmError,
+    /// Report busy and never clear it.
+    BusyStuck,
+    /// From then on, stamp measurements 10 s in the past.
+    StaleStamps,
+    /// From then on, stamp measurements zero (CRTK's "invalid").
+    ZeroStamps,
+    /// Ignore the command, as if it were lost.
+    DropCommand,
+}
+
+impl std::str::FromStr for WireFault {
+    type Err = String;
+    /// `KIND@N`, e.g. `arm-error@5`.
+    fn from_str(s: &str) -> Result<Self, String> {
+        let (kind, nth) = s
+            .split_once('@')
+            .ok_or_else(|| format!("wire fault {s:?}: expected KIND@N, e.g. arm-error@5"))?;
+        let kind = match kind {
+            "arm-error" => WireFaultKind::ArmError,
+            "busy-stuck" => WireFaultKind::BusyStuck,
+            "stale-stamps" => WireFaultKind::StaleStamps,
+            "zero-stamps" => WireFaultKind::ZeroStamps,
+            "drop-command" => WireFaultKind::DropCommand,
+            other => {
+                return Err(format!(
+                    "wire fault {other:?}: expected arm-error, busy-stuck, stale-stamps, \
+                     zero-stamps or drop-command"
+                ));
+            }
+        };
+        let nth = nth
+            .parse::<u32>()
+            .ok()
+            .filter(|n| *n >= 1)
+            .ok_or_else(|| format!("wire fault {s:?}: N counts motion commands from 1"))?;
+        Ok(Self { kind, nth })
+    }
+}
+
+/// How the sim-node runs.
+#[derive(Clone, Debug)]
+pub struct SimNodeOptions {
+    /// Domain.
+    pub ros: Ros2Options,
+    /// The first world's seed (each client's reset brings its own).
+    pub seed: u64,
+    /// The first world's scene.
+    pub scene: SceneConfig,
+    /// The first world's estimator noise.
+    pub sensing: SensingConfig,
+    /// Simulated seconds per wall second while a motion is reported busy (1: real time).
+    pub time_scale: f64,
+    /// State publishing rate, Hz.
+    pub rate_hz: f64,
+    /// Misbehaviour.
+    pub faults: Vec<WireFault>,
+    /// The arms' namespaces: right, left.
+    pub arms: [String; 2],
+}
+
+impl Default for SimNodeOptions {
+    fn default() -> Self {
+        Self {
+            ros: Ros2Options { domain_id: 0 },
+            seed: 1,
+            scene: SceneConfig::default(),
+            sensing: SensingConfig::default(),
+            time_scale: 100.0,
+            rate_hz: 100.0,
+            faults: Vec::new(),
+            arms: ["PSM1".into(), "PSM2".into()],
+        }
+    }
+}
+
+/// A command from the wire.
+#[derive(Debug)]
+enum Cmd {
+    Move(usize, PoseStamped),
+    Servo(usize, PoseStamped),
+    Jaw(usize, JointState),
+    Hold(usize),
+    State(usize, String),
+    Ratio(usize, f64),
+    Oracle(Request),
+    Unreadable(String),
+}
+
+/// How measurements are stamped.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Stamps {
+    Now,
+    Stale,
+    Zero,
+}
+
+#[derive(Debug)]
+struct Snapshot {
+    poses: [Pose; 2],
+    setpoints: [Pose; 2],
+    jaws: [f64; 2],
+    stamps: Stamps,
+}
+
+struct ArmOut {
+    measured_cp: Topic<PoseStamped>,
+    setpoint_cp: Topic<PoseStamped>,
+    jaw: Topic<JointState>,
+    state: Topic<OperatingState>,
+    error: Topic<StringMsg>,
+}
+
+struct Out {
+    arms: Vec<ArmOut>,
+    reply: Topic<StringMsg>,
+    snapshot: Mutex<Snapshot>,
+}
+
+impl Out {
+    fn publish_measurements(&self) {
+        let (snap, stamps) = {
+            let s = self.snapshot.lock().unwrap_or_else(PoisonError::into_inner);
+            ((s.poses, s.setpoints, s.jaws), s.stamps)
+        };
+        let t = stamp(stamps);
+        for (i, a) in self.arms.iter().enumerate() {
+            let _ = a.measured_cp.publish(crate::pose_to_msg(&snap.0[i], t, ""));
+            let _ = a.setpoint_cp.publish(crate::pose_to_msg(&snap.1[i], t, ""));
+            let _ = a.jaw.publish(JointState {
+                header: msg::Header {
+                    stamp: t,
+                    frame_id: String::new(),
+                },
+                name: vec!["jaw".into()],
+                position: vec![snap.2[i]],
+                velocity: vec![],
+                effort: vec![],
+            });
+        }
+    }
+}
+
+fn stamp(mode: Stamps) -> msg::Time {
+    match mode {
+        Stamps::Now => now_stamp(),
+        Stamps::Stale => {
+            let mut t = now_stamp();
+            t.sec -= 10;
+            t
+        }
+        Stamps::Zero => msg::Time::default(),
+    }
+}
+
+/// One arm's operating state as the sim-node reports it.
+#[derive(Clone, Debug, PartialEq)]
+struct ArmState {
+    state: &'static str,
+    homed: bool,
+    busy: bool,
+}
+
+/// The world and what answers for it.
+struct World {
+    world: MockDvrk,
+    estimator: ModelEstimator,
+    observer: MockObserver,
+    holds: [u64; 2],
+}
+
+impl World {
+    fn new(seed: u64, scene: &SceneConfig, sensing: SensingConfig) -> Result<Self, String> {
+        let streams = Streams::new(seed);
+        let world = MockDvrk::new(scene, streams, SimClock::new()).map_err(|e| e.to_string())?;
+        let estimator =
+            ModelEstimator::new(world.clone(), sensing, streams).map_err(|e| e.to_string())?;
+        Ok(Self {
+            observer: MockObserver::new(world.clone()),
+            estimator,
+            world,
+            holds: [0; 2],
+        })
+    }
+}
+
+const SIDES: [Side; 2] = [Side::Right, Side::Left];
+
+/// Serve until `stop` is set. `log` gets one line per event worth telling (ready, resets,
+/// motions, holds, faults), for people and for tests watching the process.
+pub fn serve(
+    options: &SimNodeOptions,
+    stop: &AtomicBool,
+    log: &mut dyn FnMut(&str),
+) -> Result<(), String> {
+    if !(options.time_scale.is_finite() && options.time_scale >= 1.0) {
+        return Err(format!(
+            "time scale {}: expected at least 1 (simulated seconds per wall second)",
+            options.time_scale
+        ));
+    }
+    if !(options.rate_hz.is_finite() && (1.0..=1000.0).contains(&options.rate_hz)) {
+        return Err(format!(
+            "rate {} Hz: expected 1 to 1000 Hz",
+            options.rate_hz
+        ));
+    }
+    let mut world = World::new(options.seed, &options.scene, options.sensing)?;
+    let mut bus = Bus::new(&options.ros, "sim_node")?;
+    let (tx, rx) = std::sync::mpsc::channel::<Cmd>();
+    let mut arms = Vec::new();
+    for (i, name) in options.arms.iter().enumerate() {
+        arms.push(arm_topics(&mut bus, name, i, &tx)?);
+    }
+    let reply = bus.publisher::<StringMsg>(oracle::REPLY_TOPIC, types::STRING, &stream_qos())?;
+    let otx = tx.clone();
+    bus.subscribe::<StringMsg, _>(
+        oracle::REQUEST_TOPIC,
+        types::STRING,
+        &stream_qos(),
+        move |r| {
+            let cmd = match r.and_then(|m| {
+                serde_json::from_str::<Request>(&m.data)
+                    .map_err(|e| format!("{}: bad request: {e}", oracle::REQUEST_TOPIC))
+            }) {
+                Ok(req) => Cmd::Oracle(req),
+                Err(e) => Cmd::Unreadable(e),
+            };
+            let _ = otx.send(cmd);
+        },
+    )?;
+    let out = Arc::new(Out {
+        arms,
+        reply,
+        snapshot: Mutex::new(snapshot(&world.world, Stamps::Now)),
+    });
+    let mut node = Node {
+        out: Arc::clone(&out),
+        states: vec![
+            ArmState {
+                state: "DISABLED",
+                homed: false,
+                busy: false,
+            };
+            2
+        ],
+        motions: 0,
+        stuck: false,
+        options: options.clone(),
+        pending: VecDeque::new(),
+    };
+    for i in 0..2 {
+        node.publish_state(i);
+    }
+    // The state stream, at its rate, on its own thread.
+    let publishing = Arc::new(AtomicBool::new(true));
+    let (p_out, p_on, period) = (
+        Arc::clone(&out),
+        Arc::clone(&publishing),
+        Duration::from_secs_f64(1.0 / options.rate_hz),
+    );
+    let publisher = std::thread::spawn(move || {
+        let mut next = Instant::now();
+        while p_on.load(Ordering::SeqCst) {
+            p_out.publish_measurements();
+            next += period;
+            let now = Instant::now();
+            if next > now {
+                std::thread::sleep(next - now);
+            } else {
+                next = now;
+            }
+        }
+    });
+    log(&format!(
+        "sim-node: ready on ROS_DOMAIN_ID {} (ROS 2 {}), arms /{} and /{}, seed {}, time scale {}×",
+        options.ros.domain_id,
+        crate::ros2::DISTRIBUTION,
+        options.arms[0],
+        options.arms[1],
+        options.seed,
+        options.time_scale
+    ));
+    while !stop.load(Ordering::SeqCst) {
+        let cmd = match node.pending.pop_front() {
+            Some(c) => c,
+            None => match rx.recv_timeout(Duration::from_millis(50)) {
+                Ok(c) => c,
+                Err(RecvTimeoutError::Timeout) => continue,
+                Err(RecvTimeoutError::Disconnected) => break,
+            },
+        };
+        node.handle(cmd, &mut world, &rx, log);
+    }
+    publishing.store(false, Ordering::SeqCst);
+    let _ = publisher.join();
+    drop(bus);
+    Ok(())
+}
+
+fn snapshot(world: &MockDvrk, stamps: Stamps) -> Snapshot {
+    let pose = |s: Side| {
+        world
+            .arm(s)
+            .setpoint_cp()
+            .unwrap_or_else(|_| Pose::identity())
+    };
+    let jaw = |s: Side| world.jaw(s).measured_jp().unwrap_or(0.0);
+    Snapshot {
+        // The mock's encoders cannot see joint offsets: measured is the setpoint.
+        poses: [pose(Side::Right), pose(Side::Left)],
+        setpoints: [pose(Side::Right), pose(Side::Left)],
+        jaws: [jaw(Side::Right), jaw(Side::Left)],
+        stamps,
+    }
+}
+
+fn arm_topics(bus: &mut Bus, name: &str, i: usize, tx: &Sender<Cmd>) -> Result<ArmOut, String> {
+    let t = |topic: &str| format!("/{name}/{topic}");
+    fn forward<M: Send + 'static>(
+        tx: &Sender<Cmd>,
+        make: impl Fn(M) -> Cmd + Send + 'static,
+    ) -> impl FnMut(Result<M, String>) + Send + 'static {
+        let tx = tx.clone();
+        move |r| {
+            let _ = tx.send(match r {
+                Ok(m) => make(m),
+                Err(e) => Cmd::Unreadable(e),
+            });
+        }
+    }
+    let q = stream_qos();
+    bus.subscribe(
+        &t("move_cp"),
+        types::POSE_STAMPED,
+        &q,
+        forward(tx, move |m| Cmd::Move(i, m)),
+    )?;
+    bus.subscribe(
+        &t("servo_cp"),
+        types::POSE_STAMPED,
+        &q,
+        forward(tx, move |m| Cmd::Servo(i, m)),
+    )?;
+    bus.subscribe(
+        &t("jaw/move_jp"),
+        types::JOINT_STATE,
+        &q,
+        forward(tx, move |m| Cmd::Jaw(i, m)),
+    )?;
+    bus.subscribe(
+        &t("hold"),
+        types::EMPTY,
+        &q,
+        forward(tx, move |_: Empty| Cmd::Hold(i)),
+    )?;
+    bus.subscribe(
+        &t("state_command"),
+        types::STRING_STAMPED,
+        &q,
+        forward(tx, move |m: msg::StringStamped| Cmd::State(i, m.string)),
+    )?;
+    bus.subscribe(
+        &t("trajectory_j/set_ratio"),
+        types::FLOAT64,
+        &q,
+        forward(tx, move |m: Float64| Cmd::Ratio(i, m.data)),
+    )?;
+    Ok(ArmOut {
+        measured_cp: bus.publisher(&t("measured_cp"), types::POSE_STAMPED, &q)?,
+        setpoint_cp: bus.publisher(&t("setpoint_cp"), types::POSE_STAMPED, &q)?,
+        jaw: bus.publisher(&t("jaw/measured_js"), types::JOINT_STATE, &q)?,
+        state: bus.publisher(
+            &t("operating_state"),
+            types::OPERATING_STATE,
+            &latched_qos(),
+        )?,
+        error: bus.publisher(&t("error"), types::STRING, &q)?,
+    })
+}
+
+struct Node {
+    out: Arc<Out>,
+    states: Vec<ArmState>,
+    motions: u32,
+    stuck: bool,
+    options: SimNodeOptions,
+    /// Commands that arrived while a motion was busy, in order.
+    pending: VecDeque<Cmd>,
+}
+
+enum Motion {
+    Pose(Pose),
+    Jaw(f64),
+}
+
+impl Node {
+    fn publish_state(&self, i: usize) {
+        let s = &self.states[i];
+        let _ = self.out.arms[i].state.publish(OperatingState {
+            header: msg::Header {
+                stamp: now_stamp(),
+                frame_id: String::new(),
+            },
+            state: s.state.into(),
+            is_homed: s.homed,
+            is_busy: s.busy,
+        });
+    }
+
+    fn error(&mut self, i: usize, text: &str, log: &mut dyn FnMut(&str)) {
+        let text = format!("{}: {text}", self.options.arms[i]);
+        log(&format!("sim-node: error {text}"));
+        let _ = self.out.arms[i].error.publish(StringMsg { data: text });
+    }
+
+    fn set_busy(&mut self, i: usize, busy: bool) {
+        self.states[i].busy = busy;
+        self.publish_state(i);
+    }
+
+    /// Wait `d` (wall), ending early on a `hold` of arm `i`; queue everything else.
+    fn dwell(&mut self, i: usize, d: Duration, rx: &Receiver<Cmd>, world: &mut World) {
+        let end = Instant::now() + d;
+        loop {
+            let now = Instant::now();
+            if now >= end {
+                return;
+            }
+            match rx.recv_timeout(end - now) {
+                Ok(Cmd::Hold(j)) => {
+                    world.holds[j] += 1;
+                    if j == i {
+                        return;
+                    }
+                }
+                Ok(other) => self.pending.push_back(other),
+                Err(_) => return,
+            }
+        }
+    }
+
+    fn update_snapshot(&self, world: &World) {
+        let mut s = self
+            .out
+            .snapshot
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
+        let stamps = s.stamps;
+        *s = snapshot(&world.world, stamps);
+    }
+
+    fn refresh(&self, world: &World) {
+        self.update_snapshot(world);
+        self.out.publish_measurements();
+    }
+
+    fn motion(
+        &mut self,
+        i: usize,
+        what: &str,
+        motion: Motion,
+        world: &mut World,
+        rx: &Receiver<Cmd>,
+        log: &mut dyn FnMut(&str),
+    ) {
+        self.motions += 1;
+        let n = self.motions;
+        log(&format!(
+            "sim-node: motion {n} {what} /{}",
+            self.options.arms[i]
+        ));
+        let fault = self
+            .options
+            .faults
+            .iter()
+            .find(|f| f.nth == n)
+            .map(|f| f.kind);
+        match fault {
+            Some(WireFaultKind::DropCommand) => {
+                log(&format!("sim-node: wire fault: dropped motion {n}"));
+                return;
+            }
+            Some(WireFaultKind::ArmError) => {
+                self.error(
+                    i,
+                    "sim-node wire fault: joint 3 following error, arm powered off",
+                    log,
+                );
+                self.states[i].state = "FAULT";
+                self.publish_state(i);
+                return;
+            }
+            Some(WireFaultKind::BusyStuck) => {
+                log(&format!("sim-node: wire fault: motion {n} stays busy"));
+                self.stuck = true;
+                self.set_busy(i, true);
+                return;
+            }
+            Some(WireFaultKind::StaleStamps) | Some(WireFaultKind::ZeroStamps) => {
+                let mode = if fault == Some(WireFaultKind::StaleStamps) {
+                    Stamps::Stale
+                } else {
+                    Stamps::Zero
+                };
+                log(&format!(
+                    "sim-node: wire fault: {mode:?} stamps from motion {n}"
+                ));
+                self.out
+                    .snapshot
+                    .lock()
+                    .unwrap_or_else(PoisonError::into_inner)
+                    .stamps = mode;
+            }
+            None => {}
+        }
+        let st = &self.states[i];
+        if st.state != "ENABLED" || !st.homed || self.stuck {
+            let why = format!(
+                "{what} refused: the arm is {} (homed: {}, busy: {})",
+                st.state, st.homed, st.busy
+            );
+            self.error(i, &why, log);
+            return;
+        }
+        let side = SIDES[i];
+        let t0 = world.world.clock().now();
+        let result = match motion {
+            Motion::Pose(p) => world.world.arm(side).move_cp(&p).map(|_| ()),
+            Motion::Jaw(a) => world.world.jaw(side).move_jp(a).map(|_| ()),
+        };
+        let sim_s = (world.world.clock().now() - t0).as_secs_f64();
+        self.set_busy(i, true);
+        if let Err(e) = result {
+            self.error(i, &e.to_string(), log);
+        } else {
+            let wall = (sim_s / self.options.time_scale).clamp(0.002, 10.0);
+            self.dwell(i, Duration::from_secs_f64(wall), rx, world);
+        }
+        // Idle first, then a measurement stamped after it: what the dVRK's 100 Hz stream
+        // gives a client that waits for a measurement newer than the idle state.
+        self.update_snapshot(world);
+        self.set_busy(i, false);
+        self.out.publish_measurements();
+    }
+
+    fn handle(
+        &mut self,
+        cmd: Cmd,
+        world: &mut World,
+        rx: &Receiver<Cmd>,
+        log: &mut dyn FnMut(&str),
+    ) {
+        match cmd {
+            Cmd::Move(i, m) => match crate::pose_from_msg(&m) {
+                Ok(p) => self.motion(i, "move_cp", Motion::Pose(p), world, rx, log),
+                Err(e) => self.error(i, &format!("move_cp refused: {e}"), log),
+            },
+            Cmd::Jaw(i, m) => match m.position.first() {
+                Some(a) if a.is_finite() => {
+                    self.motion(i, "jaw/move_jp", Motion::Jaw(*a), world, rx, log);
+                }
+                _ => self.error(
+                    i,
+                    &format!("jaw/move_jp refused: position {:?}", m.position),
+                    log,
+                ),
+            },
+            Cmd::Servo(i, m) => {
+                let latency_s = crate::ros2::stamp_age_s(&m.header.stamp);
+                match crate::pose_from_msg(&m) {
+                    Ok(p) if self.states[i].state == "ENABLED" && self.states[i].homed => {
+                        if let Err(e) = world.world.arm(SIDES[i]).servo_cp(&p) {
+                            self.error(i, &e.to_string(), log);
+                        }
+                        SERVO_LATENCIES
+                            .lock()
+                            .unwrap_or_else(PoisonError::into_inner)
+                            .push(latency_s);
+                        self.update_snapshot(world);
+                    }
+                    Ok(_) => {
+                        self.error(i, "servo_cp refused: the arm is not enabled and homed", log)
+                    }
+                    Err(e) => self.error(i, &format!("servo_cp refused: {e}"), log),
+                }
+            }
+            Cmd::Hold(i) => {
+                world.holds[i] += 1;
+                let _ = world.world.arm(SIDES[i]).hold();
+                log(&format!("sim-node: hold /{}", self.options.arms[i]));
+            }
+            Cmd::State(i, command) => self.state_command(i, &command, log),
+            Cmd::Ratio(i, r) => log(&format!(
+                "sim-node: /{} trajectory speed ratio {r}",
+                self.options.arms[i]
+            )),
+            Cmd::Oracle(req) => {
+                let result = self.answer(req.call, world, log);
+                let text = serde_json::to_string(&Reply {
+                    client: req.client,
+                    seq: req.seq,
+                    result,
+                })
+                .unwrap_or_else(|e| format!("{{\"error\":\"{e}\"}}"));
+                let _ = self.out.reply.publish(StringMsg { data: text });
+            }
+            Cmd::Unreadable(e) => log(&format!("sim-node: ignored {e}")),
+        }
+    }
+
+    fn state_command(&mut self, i: usize, command: &str, log: &mut dyn FnMut(&str)) {
+        log(&format!(
+            "sim-node: /{} state_command {command}",
+            self.options.arms[i]
+        ));
+        let s = &mut self.states[i];
+        match command {
+            "enable" => s.state = "ENABLED",
+            "disable" => s.state = "DISABLED",
+            "home" if s.state == "ENABLED" => {
+                // Homing is a motion: busy, then homed.
+                self.set_busy(i, true);
+                std::thread::sleep(Duration::from_millis(5));
+                self.states[i].homed = true;
+                self.states[i].busy = false;
+            }
+            "unhome" => s.homed = false,
+            "pause" => s.state = "PAUSED",
+            "resume" if s.state == "PAUSED" => s.state = "ENABLED",
+            other => {
+                let why = format!("state_command {other:?} refused in state {}", s.state);
+                self.error(i, &why, log);
+                return;
+            }
+        }
+        self.publish_state(i);
+    }
+
+    fn answer(
+        &mut self,
+        call: Call,
+        w: &mut World,
+        log: &mut dyn FnMut(&str),
+    ) -> Result<Answer, String> {
+        Ok(match call {
+            Call::Ping => Answer::Done,
+            Call::Reset {
+                seed,
+                scene,
+                sensing,
+            } => {
+                *w = World::new(seed, &scene, sensing)?;
+                self.refresh(w);
+                log(&format!("sim-node: reset to seed {seed}"));
+                Answer::Done
+            }
+            Call::Estimate => {
+                Answer::Estimate(w.estimator.estimate_needle().map(|e| WireEstimate {
+                    pose: e.pose,
+                    confidence: e.confidence,
+                    stamp_s: e.stamp.as_secs_f64(),
+                }))
+            }
+            Call::BeginPass => {
+                w.observer.begin_pass();
+                Answer::Done
+            }
+            Call::EndPass { point } => {
+                let p = w.observer.end_pass(&point);
+                Answer::Pass(WirePass {
+                    entry_error_m: p.entry_error_m,
+                    exit_error_m: p.exit_error_m,
+                    protrusion_m: p.protrusion_m,
+                    passed: p.passed,
+                })
+            }
+            Call::Problem => Answer::Problem(w.observer.problem()),
+            Call::NeedleInTissue => Answer::Bool(w.observer.needle_in_tissue()),
+            Call::Cinched { beta_m } => {
+                w.observer.cinched(beta_m);
+                Answer::Done
+            }
+            Call::ThreadLeft => Answer::Meters(w.observer.thread_left_m()),
+            Call::Recover { needs } => {
+                w.world.recover(needs);
+                self.refresh(w);
+                log(&format!("sim-node: recovery motion, needle to {needs:?}"));
+                Answer::Done
+            }
+            Call::Holds => Answer::Holds(w.holds),
+        })
+    }
+}
+
+/// One-way latencies of every `servo_cp` received (receive time minus the command's stamp,
+/// both this machine's clock), s: what `stitch bench ros2` reads.
+pub static SERVO_LATENCIES: Mutex<Vec<f64>> = Mutex::new(Vec::new());
