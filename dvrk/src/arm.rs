@@ -676,7 +676,15 @@ impl Motion {
                 if h.errors.len() > h.errors_reported
                     || h.state.as_ref().is_some_and(|s| s.state == "FAULT")
                 {
-                    return Some(Err(()));
+                    return Some(Err(None));
+                }
+                // A dVRK streams its measurements all through a move: silence means it is gone.
+                let silent_s = h
+                    .measured
+                    .as_ref()
+                    .map(|(_, at)| at.elapsed().as_secs_f64());
+                if let Some(silent_s) = silent_s.filter(|s| *s > c.stale_after_s) {
+                    return Some(Err(Some(silent_s)));
                 }
                 h.state
                     .as_ref()
@@ -686,7 +694,15 @@ impl Motion {
         };
         let idle_s = match fell {
             Some(Ok(idle)) => idle,
-            Some(Err(())) => {
+            Some(Err(Some(silent_s))) => {
+                let _ = l.hold();
+                return Err(l.fault(format!(
+                    "{what}: the dVRK went silent mid-move (no measured_cp for {silent_s:.2} s, \
+                     bound {} s): holding",
+                    c.stale_after_s
+                )));
+            }
+            Some(Err(None)) => {
                 let _ = l.hold();
                 let e = l.new_error(&mut l.heard());
                 return Err(e.unwrap_or_else(|| l.fault(format!("{what}: failed"))));

@@ -242,8 +242,13 @@ impl Bus {
     }
 }
 
+/// How long a bus lingers when dropped, so its reliable writers can still deliver (and
+/// repeat, if lost) the last commands, a final `hold` above all.
+pub const LINGER: Duration = Duration::from_millis(200);
+
 impl Drop for Bus {
     fn drop(&mut self) {
+        std::thread::sleep(LINGER);
         self.node.stop_spinner();
         if let Some(stop) = self.stop.take() {
             let _ = stop.try_send(());

@@ -1,0 +1,373 @@
+//! Missions over real DDS on loopback: `stitch sim-node` serves the mock dVRK on the CRTK
+//! topics and `stitch run --robot ros2` drives it, each test on its own ROS 2 domain, each
+//! process under a deadline. Faults over the wire: each gets a clear error, the arms are held,
+//! and the journal records both.
+#![cfg(feature = "ros2")]
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+fn root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("stitch-ros2-test-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    dir.join(name)
+}
+
+/// A domain of this test's own: away from 0, from other test processes, and from the other
+/// tests in this one (`k` is the test's number).
+fn domain(k: u16) -> String {
+    (10 + (std::process::id() % 20) as u16 * 10 + k).to_string()
+}
+
+/// A running `stitch sim-node`, killed when dropped; its log lines collected.
+struct SimNode {
+    child: Child,
+    log: Arc<Mutex<String>>,
+}
+
+impl SimNode {
+    fn start(domain: &str, args: &[&str]) -> Self {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_stitch"))
+            .args(["sim-node", "--domain-id", domain])
+            .args(args)
+            .current_dir(root())
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("stitch sim-node starts");
+        let log = Arc::new(Mutex::new(String::new()));
+        let (sink, stderr) = (Arc::clone(&log), child.stderr.take().expect("stderr"));
+        std::thread::spawn(move || {
+            for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+                let mut l = sink.lock().expect("log");
+                l.push_str(&line);
+                l.push('\n');
+            }
+        });
+        let node = Self { child, log };
+        node.wait_for("sim-node: ready", Duration::from_secs(30));
+        node
+    }
+
+    fn log(&self) -> String {
+        self.log.lock().expect("log").clone()
+    }
+
+    fn wait_for(&self, text: &str, timeout: Duration) {
+        let deadline = Instant::now() + timeout;
+        while !self.log().contains(text) {
+            assert!(
+                Instant::now() < deadline,
+                "sim-node did not say {text:?} within {timeout:?}:\n{}",
+                self.log()
+            );
+            std::thread::sleep(Duration::from_millis(10));
+        }
+    }
+
+    fn kill(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+impl Drop for SimNode {
+    fn drop(&mut self) {
+        self.kill();
+    }
+}
+
+/// What a `stitch run` printed and wrote.
+struct Ran {
+    code: Option<i32>,
+    out: String,
+    journal: String,
+}
+
+/// `stitch run`, killed (and the test failed) past `timeout`.
+fn run(args: &[&str], journal: &Path, timeout: Duration) -> Ran {
+    let (out_path, err_path) = (
+        journal.with_extension("stdout"),
+        journal.with_extension("stderr"),
+    );
+    let mut child = Command::new(env!("CARGO_BIN_EXE_stitch"))
+        .arg("run")
+        .args(args)
+        .args(["--journal", journal.to_str().expect("utf-8")])
+        .current_dir(root())
+        .stdout(std::fs::File::create(&out_path).expect("stdout file"))
+        .stderr(std::fs::File::create(&err_path).expect("stderr file"))
+        .spawn()
+        .expect("stitch run starts");
+    let deadline = Instant::now() + timeout;
+    let status = loop {
+        if let Some(s) = child.try_wait().expect("wait") {
+            break s;
+        }
+        if Instant::now() > deadline {
+            let _ = child.kill();
+            panic!(
+                "stitch run {args:?} did not end within {timeout:?}:\n{}",
+                std::fs::read_to_string(&err_path).unwrap_or_default()
+            );
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    Ran {
+        code: status.code(),
+        out: std::fs::read_to_string(&out_path).unwrap_or_default()
+            + &std::fs::read_to_string(&err_path).unwrap_or_default(),
+        journal: std::fs::read_to_string(journal).unwrap_or_default(),
+    }
+}
+
+/// A journal without its times: what must match between the two robots.
+fn untimed(journal: &str) -> Vec<serde_json::Value> {
+    journal
+        .lines()
+        .map(|l| {
+            let mut v: serde_json::Value = serde_json::from_str(l).expect("a JSON line");
+            v.as_object_mut().expect("an object").remove("t_s");
+            v
+        })
+        .collect()
+}
+
+#[test]
+fn missions_over_ros2_match_the_in_process_mock_seed_for_seed() {
+    // STITCH_ROS2_RUNS=20 for the acceptance's twenty in a row.
+    let runs: u64 = std::env::var("STITCH_ROS2_RUNS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(3);
+    let d = domain(0);
+    let node = SimNode::start(&d, &[]);
+    for i in 0..runs {
+        let seed = (i + 1).to_string();
+        let plan = if i % 3 == 2 {
+            "scripts/stitch_human.rhai"
+        } else {
+            "scripts/stitch.rhai"
+        };
+        let (a, b) = (
+            tmp(&format!("mock-{i}.jsonl")),
+            tmp(&format!("ros2-{i}.jsonl")),
+        );
+        let mock = run(&[plan, "--seed", &seed], &a, Duration::from_secs(60));
+        let wire = run(
+            &[plan, "--seed", &seed, "--robot", "ros2", "--domain-id", &d],
+            &b,
+            Duration::from_secs(120),
+        );
+        assert!(matches!(mock.code, Some(0 | 4)), "{}", mock.out);
+        assert_eq!(
+            wire.code,
+            mock.code,
+            "run {i} ({plan}, seed {seed}): {}\nsim-node:\n{}",
+            wire.out,
+            node.log()
+        );
+        let (m, w) = (untimed(&mock.journal), untimed(&wire.journal));
+        assert!(m.len() > 5, "{}", mock.journal);
+        assert_eq!(w, m, "run {i} ({plan}, seed {seed}): the journals differ");
+    }
+    let log = node.log();
+    assert!(log.contains("state_command enable"), "{log}");
+    assert!(log.contains("state_command home"), "{log}");
+    assert!(log.contains("trajectory speed ratio 0.2"), "{log}");
+}
+
+/// Run STITCH against a sim-node that misbehaves so; the run must fail (exit 4) with
+/// `expect` in its journal, and the journal must record the hold.
+fn faulted(k: u16, node_args: &[&str], expect: &str) -> (Ran, SimNode) {
+    let d = domain(k);
+    let node = SimNode::start(&d, node_args);
+    let config = tmp(&format!("dvrk-{k}.toml"));
+    std::fs::write(&config, "move_timeout_s = 2.0\n").expect("config");
+    let journal = tmp(&format!("fault-{k}.jsonl"));
+    let ran = run(
+        &[
+            "scripts/stitch.rhai",
+            "--robot",
+            "ros2",
+            "--domain-id",
+            &d,
+            "--dvrk-config",
+            config.to_str().expect("utf-8"),
+        ],
+        &journal,
+        Duration::from_secs(60),
+    );
+    assert_eq!(ran.code, Some(4), "{}\nsim-node:\n{}", ran.out, node.log());
+    assert!(
+        ran.journal.contains(expect),
+        "expected {expect:?} in the journal:\n{}",
+        ran.journal
+    );
+    assert!(
+        ran.journal.contains("arm_fault"),
+        "the failure is an arm fault:\n{}",
+        ran.journal
+    );
+    assert!(
+        ran.journal.contains(r#""event":"hold""#),
+        "the journal records the hold:\n{}",
+        ran.journal
+    );
+    assert!(ran.out.contains("arm fault"), "{}", ran.out);
+    (ran, node)
+}
+
+fn held_both(node: &SimNode) {
+    let deadline = Instant::now() + Duration::from_secs(5);
+    loop {
+        let log = node.log();
+        if log.contains("hold /PSM1") && log.contains("hold /PSM2") {
+            return;
+        }
+        assert!(Instant::now() < deadline, "both arms were not held:\n{log}");
+        std::thread::sleep(Duration::from_millis(10));
+    }
+}
+
+#[test]
+fn an_arm_error_over_the_wire_fails_the_motion_and_holds_the_arms() {
+    let (_, node) = faulted(
+        1,
+        &["--wire-fault", "arm-error@5"],
+        "the dVRK reported: PSM1: sim-node wire fault: joint 3 following error",
+    );
+    held_both(&node);
+}
+
+#[test]
+fn a_busy_that_never_clears_times_out_and_holds_the_arms() {
+    let (_, node) = faulted(
+        2,
+        &["--wire-fault", "busy-stuck@5"],
+        "motion did not finish within 2.000 s",
+    );
+    held_both(&node);
+}
+
+#[test]
+fn stale_measurements_are_refused() {
+    let (_, node) = faulted(3, &["--wire-fault", "stale-stamps@5"], "s old");
+    held_both(&node);
+}
+
+#[test]
+fn zero_stamps_are_refused_as_invalid() {
+    let (_, node) = faulted(
+        4,
+        &["--wire-fault", "zero-stamps@5"],
+        "zero stamp: the dVRK marks invalid data so",
+    );
+    held_both(&node);
+}
+
+#[test]
+fn a_dropped_command_is_caught_and_the_arms_held() {
+    let (_, node) = faulted(
+        5,
+        &["--wire-fault", "drop-command@5"],
+        "the arm never reported busy within 1 s",
+    );
+    held_both(&node);
+}
+
+#[test]
+fn a_sim_node_killed_mid_move_is_caught_and_the_run_ends_holding() {
+    let d = domain(6);
+    // Real time, so the third motion is still under way when the node dies.
+    let mut node = SimNode::start(&d, &["--time-scale", "1"]);
+    let journal = tmp("killed.jsonl");
+    let args: Vec<String> = ["scripts/stitch.rhai", "--robot", "ros2", "--domain-id", &d]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
+    let runner = std::thread::spawn({
+        let journal = journal.clone();
+        move || {
+            let args: Vec<&str> = args.iter().map(String::as_str).collect();
+            run(&args, &journal, Duration::from_secs(60))
+        }
+    });
+    node.wait_for("sim-node: motion 3 ", Duration::from_secs(30));
+    std::thread::sleep(Duration::from_millis(100));
+    node.kill();
+    let ran = runner.join().expect("the run thread");
+    assert_eq!(ran.code, Some(4), "{}", ran.out);
+    assert!(
+        ran.journal.contains("the dVRK went silent mid-move"),
+        "{}",
+        ran.journal
+    );
+    assert!(ran.journal.contains(r#""event":"hold""#), "{}", ran.journal);
+}
+
+#[test]
+fn without_a_dvrk_the_run_says_what_is_missing() {
+    let d = domain(7);
+    let config = tmp("short.toml");
+    std::fs::write(&config, "connect_timeout_s = 1.0\n").expect("config");
+    let ran = run(
+        &[
+            "scripts/stitch.rhai",
+            "--robot",
+            "ros2",
+            "--domain-id",
+            &d,
+            "--dvrk-config",
+            config.to_str().expect("utf-8"),
+        ],
+        &tmp("none.jsonl"),
+        Duration::from_secs(30),
+    );
+    assert_eq!(ran.code, Some(1), "{}", ran.out);
+    assert!(
+        ran.out.contains(&format!("ROS_DOMAIN_ID {d}")),
+        "{}",
+        ran.out
+    );
+    assert!(ran.out.contains("stitch sim-node"), "{}", ran.out);
+}
+
+#[test]
+fn bad_ros2_settings_are_refused_with_the_reason() {
+    let bad = tmp("bad.toml");
+    std::fs::write(&bad, "stale_after_s = -1.0\n").expect("config");
+    let ran = run(
+        &[
+            "scripts/stitch.rhai",
+            "--robot",
+            "ros2",
+            "--dvrk-config",
+            bad.to_str().expect("utf-8"),
+        ],
+        &tmp("bad.jsonl"),
+        Duration::from_secs(30),
+    );
+    assert_eq!(ran.code, Some(1), "{}", ran.out);
+    assert!(ran.out.contains("dvrk.stale_after_s"), "{}", ran.out);
+    let ran = run(
+        &[
+            "scripts/stitch.rhai",
+            "--robot",
+            "ros2",
+            "--domain-id",
+            "300",
+        ],
+        &tmp("bad2.jsonl"),
+        Duration::from_secs(30),
+    );
+    assert_eq!(ran.code, Some(1), "{}", ran.out);
+    assert!(ran.out.contains("0 to 232"), "{}", ran.out);
+}
