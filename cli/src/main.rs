@@ -141,7 +141,7 @@ enum Command {
     /// for `stitch run --robot ros2` on one machine (see docs/dvrk.md). Runs until killed.
     #[cfg(feature = "ros2")]
     SimNode(ros2::SimNodeArgs),
-    /// Benchmarks: `stitch bench perception`.
+    /// Benchmarks: `stitch bench perception`, `stitch bench ros2`.
     Bench {
         #[command(subcommand)]
         command: perceive::BenchCommand,
@@ -221,7 +221,11 @@ fn main() -> ExitCode {
 fn run(cli: Cli) -> anyhow::Result<u8> {
     match cli.command {
         Command::Perceive { command } => perceive::perceive(command),
-        Command::Bench { command } => perceive::bench(command),
+        Command::Bench { command } => match command {
+            #[cfg(feature = "ros2")]
+            perceive::BenchCommand::Ros2(args) => ros2::bench(args),
+            other => perceive::bench(other),
+        },
         Command::Trials(args) => trials::trials(args),
         #[cfg(feature = "ros2")]
         Command::SimNode(args) => ros2::sim_node(args),

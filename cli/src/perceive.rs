@@ -97,6 +97,10 @@ pub enum BenchCommand {
         #[arg(long, value_enum, value_delimiter = ',', default_values_t = [MatcherKind::Sgm, MatcherKind::MaskRow])]
         matchers: Vec<MatcherKind>,
     },
+    /// `servo_cp` streamed over ROS 2 (real DDS on loopback) to a sim-node in this process:
+    /// one-way latency at 1 kHz against a 100 Hz baseline.
+    #[cfg(feature = "ros2")]
+    Ros2(crate::ros2::BenchRos2Args),
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum, Serialize)]
@@ -514,7 +518,10 @@ pub fn bench(command: BenchCommand) -> anyhow::Result<u8> {
         json,
         details,
         matchers,
-    } = command;
+    } = command
+    else {
+        anyhow::bail!("not a perception benchmark");
+    };
     if let Some(d) = &details {
         std::fs::create_dir_all(d).with_context(|| format!("cannot create {}", d.display()))?;
     }

@@ -259,3 +259,122 @@ pub fn run_ros2(
     )
     .run())
 }
+
+/// `stitch bench ros2`.
+#[derive(Debug, clap::Args)]
+pub struct BenchRos2Args {
+    #[command(flatten)]
+    pub ros: Ros2Args,
+    /// Seconds streamed at each rate.
+    #[arg(long, default_value_t = 5.0)]
+    pub seconds: f64,
+    /// Print JSON instead of a table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// One rate's measurement.
+#[derive(Debug, serde::Serialize)]
+struct StreamStats {
+    rate_hz: f64,
+    sent: usize,
+    received: usize,
+    median_us: f64,
+    p99_us: f64,
+    max_us: f64,
+}
+
+/// Stream `servo_cp` to a sim-node served in this process over real DDS on loopback, at
+/// 100 Hz (the baseline: the dVRK's state rate) and at 1 kHz, and measure each command's
+/// one-way latency (the sim-node's receive time minus the command's stamp, one clock).
+pub fn bench(args: BenchRos2Args) -> anyhow::Result<u8> {
+    use std::sync::atomic::Ordering;
+    use stitch_dvrk::sim_node::SERVO_LATENCIES;
+    use stitch_robot::Arm;
+    if !(args.seconds.is_finite() && (0.1..=600.0).contains(&args.seconds)) {
+        anyhow::bail!("--seconds {}: expected 0.1 to 600", args.seconds);
+    }
+    let ros = args.ros.options()?;
+    let stop = Arc::new(AtomicBool::new(false));
+    let node = {
+        let stop = Arc::clone(&stop);
+        std::thread::spawn(move || {
+            let options = SimNodeOptions {
+                ros,
+                ..SimNodeOptions::default()
+            };
+            stitch_dvrk::sim_node::serve(&options, &stop, &mut |_| {})
+        })
+    };
+    let dvrk = Ros2Dvrk::connect(&ros, &DvrkConfig::default())
+        .context("cannot connect to the in-process sim-node")?;
+    let arm = dvrk.arm(0).ok_or_else(|| anyhow::anyhow!("no arm 0"))?;
+    let start = arm.measured_cp()?;
+    let mut rows = Vec::new();
+    for rate_hz in [100.0, 1000.0] {
+        SERVO_LATENCIES
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .clear();
+        let period = Duration::from_secs_f64(1.0 / rate_hz);
+        let n = (args.seconds * rate_hz).round() as usize;
+        let t0 = std::time::Instant::now();
+        for k in 0..n {
+            // A 1 mm circle, once over the stream.
+            let a = std::f64::consts::TAU * k as f64 / n as f64;
+            let mut goal = start;
+            goal.translation.vector +=
+                stitch_robot::Vector::new(a.cos() - 1.0, a.sin(), 0.0) * 1e-3;
+            arm.servo_cp(&goal)?;
+            let next = t0 + period * (k as u32 + 1);
+            if let Some(wait) = next.checked_duration_since(std::time::Instant::now()) {
+                std::thread::sleep(wait);
+            }
+        }
+        std::thread::sleep(Duration::from_millis(300));
+        let mut l = SERVO_LATENCIES
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .clone();
+        l.sort_by(f64::total_cmp);
+        let at = |q: f64| {
+            l.get(((l.len() as f64 - 1.0) * q).round() as usize)
+                .map_or(f64::NAN, |v| v * 1e6)
+        };
+        rows.push(StreamStats {
+            rate_hz,
+            sent: n,
+            received: l.len(),
+            median_us: at(0.5),
+            p99_us: at(0.99),
+            max_us: at(1.0),
+        });
+    }
+    stop.store(true, Ordering::SeqCst);
+    drop(arm);
+    drop(dvrk);
+    let _ = node.join();
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&rows)?);
+    } else {
+        println!(
+            "servo_cp over ROS 2 (DDS on loopback, reliable, keep last 10), ROS_DOMAIN_ID {}:",
+            ros.domain_id
+        );
+        println!("  rate      sent  received   median      p99      max");
+        for r in &rows {
+            println!(
+                "  {:>5} Hz {:>6} {:>8} {:>8.0} µs {:>6.0} µs {:>6.0} µs",
+                r.rate_hz, r.sent, r.received, r.median_us, r.p99_us, r.max_us
+            );
+        }
+        if let [base, fast] = &rows[..] {
+            println!(
+                "  1 kHz / 100 Hz: median {:.2}×, p99 {:.2}×",
+                fast.median_us / base.median_us,
+                fast.p99_us / base.p99_us
+            );
+        }
+    }
+    Ok(crate::exit::OK)
+}

@@ -32,6 +32,7 @@ def header(frame):
 samples = {
     "std_msgs/msg/String": T["std_msgs/msg/String"](data="PSM1: joint limit"),
     "std_msgs/msg/Empty": T["std_msgs/msg/Empty"](),
+    "std_msgs/msg/Float64": T["std_msgs/msg/Float64"](data=0.2),
     "geometry_msgs/msg/PoseStamped": T["geometry_msgs/msg/PoseStamped"](
         header=header("PSM1_base"),
         pose=T["geometry_msgs/msg/Pose"](

@@ -879,3 +879,46 @@ impl Jaw for Ros2Jaw {
         Ok(MoveHandle::new(Arc::new(motion)))
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_defaults_are_valid_and_bad_values_are_named() {
+        DvrkConfig::default().validate().expect("defaults");
+        for (config, name) in [
+            (
+                DvrkConfig {
+                    stale_after_s: 0.0,
+                    ..DvrkConfig::default()
+                },
+                "dvrk.stale_after_s",
+            ),
+            (
+                DvrkConfig {
+                    speed_ratio: 1.5,
+                    ..DvrkConfig::default()
+                },
+                "dvrk.speed_ratio",
+            ),
+            (
+                DvrkConfig {
+                    position_tolerance_m: f64::NAN,
+                    ..DvrkConfig::default()
+                },
+                "dvrk.position_tolerance_m",
+            ),
+            (
+                DvrkConfig {
+                    arms: ["PSM1".into(), "bad name!".into()],
+                    ..DvrkConfig::default()
+                },
+                "dvrk.arms",
+            ),
+        ] {
+            let e = config.validate().expect_err(name).to_string();
+            assert!(e.contains(name), "{e}");
+        }
+    }
+}

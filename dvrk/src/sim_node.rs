@@ -737,3 +737,41 @@ impl Node {
 /// One-way latencies of every `servo_cp` received (receive time minus the command's stamp,
 /// both this machine's clock), s: what `stitch bench ros2` reads.
 pub static SERVO_LATENCIES: Mutex<Vec<f64>> = Mutex::new(Vec::new());
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn wire_faults_parse_and_bad_ones_say_why() {
+        let f: WireFault = "busy-stuck@7".parse().expect("parses");
+        assert_eq!(
+            f,
+            WireFault {
+                kind: WireFaultKind::BusyStuck,
+                nth: 7
+            }
+        );
+        let e = "busy-stuck@0".parse::<WireFault>().expect_err("from 1");
+        assert!(e.contains("from 1"), "{e}");
+        let e = "melt@3".parse::<WireFault>().expect_err("unknown");
+        assert!(e.contains("expected arm-error"), "{e}");
+        assert!("arm-error".parse::<WireFault>().is_err());
+    }
+
+    #[test]
+    fn a_bad_time_scale_or_rate_is_refused_before_joining_the_network() {
+        let stop = AtomicBool::new(false);
+        let o = SimNodeOptions {
+            time_scale: 0.5,
+            ..SimNodeOptions::default()
+        };
+        let e = serve(&o, &stop, &mut |_| {}).expect_err("refused");
+        assert!(e.contains("time scale 0.5"), "{e}");
+        let o = SimNodeOptions {
+            rate_hz: 0.0,
+            ..SimNodeOptions::default()
+        };
+        assert!(serve(&o, &stop, &mut |_| {}).is_err());
+    }
+}

@@ -54,6 +54,11 @@ fn every_message_type_is_byte_for_byte_ros_2() {
         "std_msgs/String",
     );
     check(Empty::default(), "std_msgs__Empty.hex", "std_msgs/Empty");
+    check(
+        Float64 { data: 0.2 },
+        "std_msgs__Float64.hex",
+        "std_msgs/Float64",
+    );
     let s = std::f64::consts::FRAC_1_SQRT_2;
     check(
         PoseStamped {
