@@ -26,6 +26,16 @@ fn domain(k: u16) -> String {
     (10 + (std::process::id() % 20) as u16 * 10 + k).to_string()
 }
 
+/// One test at a time: each runs two processes whose timing bounds (a 0.25 s stale bound, a
+/// 1 s busy rise) are a real dVRK's, not a loaded 2-core machine's with nine at once.
+static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
+
+fn serial() -> std::sync::MutexGuard<'static, ()> {
+    ONE_AT_A_TIME
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
 /// A running `stitch sim-node`, killed when dropped; its log lines collected.
 struct SimNode {
     child: Child,
@@ -142,6 +152,7 @@ fn untimed(journal: &str) -> Vec<serde_json::Value> {
 
 #[test]
 fn missions_over_ros2_match_the_in_process_mock_seed_for_seed() {
+    let _one = serial();
     // STITCH_ROS2_RUNS=20 for the acceptance's twenty in a row.
     let runs: u64 = std::env::var("STITCH_ROS2_RUNS")
         .ok()
@@ -239,6 +250,7 @@ fn held_both(node: &SimNode) {
 
 #[test]
 fn an_arm_error_over_the_wire_fails_the_motion_and_holds_the_arms() {
+    let _one = serial();
     let (_, node) = faulted(
         1,
         &["--wire-fault", "arm-error@5"],
@@ -249,6 +261,7 @@ fn an_arm_error_over_the_wire_fails_the_motion_and_holds_the_arms() {
 
 #[test]
 fn a_busy_that_never_clears_times_out_and_holds_the_arms() {
+    let _one = serial();
     let (_, node) = faulted(
         2,
         &["--wire-fault", "busy-stuck@5"],
@@ -259,12 +272,14 @@ fn a_busy_that_never_clears_times_out_and_holds_the_arms() {
 
 #[test]
 fn stale_measurements_are_refused() {
+    let _one = serial();
     let (_, node) = faulted(3, &["--wire-fault", "stale-stamps@5"], "s old");
     held_both(&node);
 }
 
 #[test]
 fn zero_stamps_are_refused_as_invalid() {
+    let _one = serial();
     let (_, node) = faulted(
         4,
         &["--wire-fault", "zero-stamps@5"],
@@ -275,6 +290,7 @@ fn zero_stamps_are_refused_as_invalid() {
 
 #[test]
 fn a_dropped_command_is_caught_and_the_arms_held() {
+    let _one = serial();
     let (_, node) = faulted(
         5,
         &["--wire-fault", "drop-command@5"],
@@ -285,6 +301,7 @@ fn a_dropped_command_is_caught_and_the_arms_held() {
 
 #[test]
 fn a_sim_node_killed_mid_move_is_caught_and_the_run_ends_holding() {
+    let _one = serial();
     let d = domain(6);
     // Real time, so the third motion is still under way when the node dies.
     let mut node = SimNode::start(&d, &["--time-scale", "1"]);
@@ -315,6 +332,7 @@ fn a_sim_node_killed_mid_move_is_caught_and_the_run_ends_holding() {
 
 #[test]
 fn without_a_dvrk_the_run_says_what_is_missing() {
+    let _one = serial();
     let d = domain(7);
     let config = tmp("short.toml");
     std::fs::write(&config, "connect_timeout_s = 1.0\n").expect("config");

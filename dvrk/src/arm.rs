@@ -791,7 +791,7 @@ impl Arm for Ros2Arm {
     }
 
     fn move_cp(&self, goal: &Pose) -> Result<MoveHandle, RobotError> {
-        check_finite(&self.link.name, goal)?;
+        stitch_robot::finite_pose(&self.link.name, goal)?;
         self.link.ready()?;
         let motion = Motion::start(&self.link, Goal::Pose(*goal));
         self.link
@@ -802,7 +802,7 @@ impl Arm for Ros2Arm {
     }
 
     fn servo_cp(&self, goal: &Pose) -> Result<(), RobotError> {
-        check_finite(&self.link.name, goal)?;
+        stitch_robot::finite_pose(&self.link.name, goal)?;
         self.link.ready()?;
         self.link
             .servo_cp
@@ -812,24 +812,6 @@ impl Arm for Ros2Arm {
 
     fn hold(&self) -> Result<(), RobotError> {
         self.link.hold()
-    }
-}
-
-fn check_finite(arm: &str, goal: &Pose) -> Result<(), RobotError> {
-    let ok = goal.translation.vector.iter().all(|v| v.is_finite())
-        && goal
-            .rotation
-            .quaternion()
-            .coords
-            .iter()
-            .all(|v| v.is_finite());
-    if ok {
-        Ok(())
-    } else {
-        Err(RobotError::NonFinite {
-            arm: arm.into(),
-            what: "goal pose".into(),
-        })
     }
 }
 

@@ -17,7 +17,7 @@ pub use clock::{Clock, SimClock, WallClock};
 pub use error::RobotError;
 pub use jaw::{DummyJaw, JAW_CLOSED_RAD, JAW_OPEN_RAD, Jaw};
 pub use needle::{NEEDLE_RADIUS_M, NEEDLE_WIRE_DIAMETER_M, Needle, NeedleGeometry};
-pub use safety::{LimitPolicy, SpeedLimit, Workspace, WorkspaceLimit};
+pub use safety::{LimitPolicy, SpeedLimit, Workspace, WorkspaceLimit, finite_pose};
 pub use wound::{Wound, WoundPoint, WoundSpec};
 
 /// A rigid pose (rotation and translation, m) in the robot frame unless said otherwise.

@@ -72,7 +72,8 @@ impl TryFrom<WorkspaceFields> for Workspace {
     }
 }
 
-fn finite_pose(arm: &str, p: &Pose) -> Result<(), RobotError> {
+/// Refuse a goal pose with a NaN or infinite value, naming the arm.
+pub fn finite_pose(arm: &str, p: &Pose) -> Result<(), RobotError> {
     let ok = p.translation.vector.iter().all(|v| v.is_finite())
         && p.rotation.quaternion().coords.iter().all(|v| v.is_finite());
     if ok {
