@@ -512,6 +512,8 @@ struct BenchRow {
 }
 
 pub fn bench(command: BenchCommand) -> anyhow::Result<u8> {
+    // Irrefutable when built without the `ros2` feature (no `bench ros2`).
+    #[allow(irrefutable_let_patterns)]
     let BenchCommand::Perception {
         frames,
         seed,
