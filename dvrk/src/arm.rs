@@ -131,6 +131,14 @@ struct Heard {
     unreadable: Option<String>,
 }
 
+impl Heard {
+    /// An `error` no command has reported yet, or a FAULT state.
+    fn faulted(&self) -> bool {
+        self.errors.len() > self.errors_reported
+            || self.state.as_ref().is_some_and(|s| s.state == "FAULT")
+    }
+}
+
 #[derive(Debug)]
 struct ArmLink {
     name: String,
@@ -628,9 +636,7 @@ impl Motion {
         //    error comes first.
         let rise = self.sent + secs(c.busy_rise_timeout_s);
         let rose = l.wait_until(rise, |h| {
-            if h.errors.len() > h.errors_reported
-                || h.state.as_ref().is_some_and(|s| s.state == "FAULT")
-            {
+            if h.faulted() {
                 return Some(Err(()));
             }
             let newer = h.state_seq > self.state_seq;
@@ -673,9 +679,7 @@ impl Motion {
         let fell = match idle_already {
             Some(idle) => Some(Ok(idle)),
             None => l.wait_until(fall, |h| {
-                if h.errors.len() > h.errors_reported
-                    || h.state.as_ref().is_some_and(|s| s.state == "FAULT")
-                {
+                if h.faulted() {
                     return Some(Err(None));
                 }
                 // A dVRK streams its measurements all through a move: silence means it is gone.
