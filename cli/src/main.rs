@@ -337,19 +337,7 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
             }
             let report = match robot {
                 RobotKind::Scripted => run_scripted(&loaded, seed, outcomes.as_deref())?,
-                RobotKind::Ros2 => {
-                    let sensing = match perception {
-                        PerceptionKind::Model => mock.sensing,
-                        PerceptionKind::Perfect => SensingConfig::perfect(),
-                        PerceptionKind::Fitted => SensingConfig::fitted_to_pipeline(),
-                        PerceptionKind::Pipeline => anyhow::bail!(
-                            "--perception pipeline over ROS 2 needs the stereo camera over ROS \
-                             2, which is not built yet: use model, perfect or fitted"
-                        ),
-                    };
-                    run_ros2(&loaded, &mock.scene, sensing, seed, dvrk_config, domain_id)?
-                }
-                RobotKind::Mock => {
+                RobotKind::Ros2 | RobotKind::Mock => {
                     let perception = match perception {
                         PerceptionKind::Model => MockPerception::Model(mock.sensing),
                         PerceptionKind::Perfect => MockPerception::Model(SensingConfig::perfect()),
@@ -358,7 +346,18 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
                             MockPerception::Model(SensingConfig::fitted_to_pipeline())
                         }
                     };
-                    run_mock(&loaded, &mock.scene, perception, seed)?
+                    if robot == RobotKind::Ros2 {
+                        run_ros2(
+                            &loaded,
+                            &mock.scene,
+                            perception,
+                            seed,
+                            dvrk_config,
+                            domain_id,
+                        )?
+                    } else {
+                        run_mock(&loaded, &mock.scene, perception, seed)?
+                    }
                 }
             };
             if let Some(path) = journal {
@@ -416,7 +415,7 @@ fn robot_name(robot: RobotKind) -> &'static str {
 fn run_ros2(
     loaded: &Loaded,
     scene: &SceneConfig,
-    sensing: SensingConfig,
+    perception: MockPerception,
     seed: u64,
     dvrk_config: Option<PathBuf>,
     domain_id: Option<String>,
@@ -427,14 +426,14 @@ fn run_ros2(
             .map_err(|e| anyhow::anyhow!("--domain-id {d}: {e}"))?,
         None => stitch_dvrk::ros2::Ros2Options::from_env().map_err(anyhow::Error::msg)?,
     };
-    ros2::run_ros2(loaded, scene, sensing, seed, &ros, &config)
+    ros2::run_ros2(loaded, scene, perception, seed, &ros, &config)
 }
 
 #[cfg(not(feature = "ros2"))]
 fn run_ros2(
     _: &Loaded,
     _: &SceneConfig,
-    _: SensingConfig,
+    _: MockPerception,
     _: u64,
     _: Option<PathBuf>,
     _: Option<String>,

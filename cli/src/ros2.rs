@@ -7,16 +7,19 @@ use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
 use std::time::Duration;
 use stitch_dvrk::arm::{DvrkConfig, Ros2Dvrk};
+use stitch_dvrk::camera::{Ros2Camera, Trigger};
 use stitch_dvrk::oracle::{Answer, Call, Oracle};
 use stitch_dvrk::ros2::Ros2Options;
 use stitch_dvrk::sim_node::{SimNodeOptions, WireFault};
 use stitch_engine::{Loaded, Report, Runner};
-use stitch_perception::{NeedleEstimate, NeedleEstimator, PerceptionError};
-use stitch_primitives::{
-    FailureKind, Observer, PassObservation, Rig, RobotPrimitives, mock_layout,
+use stitch_perception::{
+    NeedleEstimate, NeedleEstimator, NeedlePipeline, PerceptionError, PipelineEstimator,
 };
-use stitch_robot::{WallClock, WoundPoint};
-use stitch_sim::{SceneConfig, SensingConfig, Streams, Subsystem};
+use stitch_primitives::{
+    FailureKind, MockPerception, Observer, PassObservation, Rig, RobotPrimitives, mock_layout,
+};
+use stitch_robot::{Clock, StereoCamera, WallClock, WoundPoint};
+use stitch_sim::{CameraConfig, SceneConfig, SensingConfig, Streams, Subsystem};
 
 /// Where on ROS 2.
 #[derive(Debug, clap::Args)]
@@ -189,12 +192,49 @@ impl Observer for RemoteObserver {
     }
 }
 
+/// The stereo camera over ROS 2 with the pipeline on its pairs, as the in-process mock runs
+/// it for `--perception pipeline`: the calibration from `camera_info`, the hand-eye pose
+/// from the configuration or else the simulated camera's own, each capture triggered over
+/// the simulator's side channel.
+fn pipeline_estimator(
+    ros: &Ros2Options,
+    config: &DvrkConfig,
+    camera: &CameraConfig,
+    scene: &SceneConfig,
+    oracle: &Arc<Oracle>,
+    clock: Arc<dyn Clock>,
+    seed: u64,
+) -> anyhow::Result<Box<dyn NeedleEstimator>> {
+    let camera_to_robot = match &config.camera.camera_to_robot {
+        Some(h) => h.pose().map_err(anyhow::Error::msg)?,
+        None => camera.camera_to_robot(),
+    };
+    let o = Arc::clone(oracle);
+    let trigger: Trigger = Box::new(move || match o.call(Call::Capture)? {
+        Answer::Frame(stamp) => Ok(stamp),
+        other => Err(format!("the simulator answered {other:?} to a capture")),
+    });
+    let camera = Ros2Camera::connect(
+        ros,
+        &config.camera,
+        camera_to_robot,
+        Some(trigger),
+        clock,
+        Duration::from_secs_f64(config.connect_timeout_s),
+    )
+    .context("cannot connect to the stereo camera")?;
+    let pipeline = NeedlePipeline::classical(camera.calibration().clone(), scene.needle)
+        .context("the stereo camera's calibration")?;
+    Ok(Box::new(PipelineEstimator::new(camera, pipeline, seed)))
+}
+
 /// Run `loaded` over ROS 2: connect to the dVRK's arms, and to the simulator's side channel
-/// for the estimator, the observer and the supervisor's recovery motion.
+/// for the observer, the supervisor's recovery motion and, with the noise model, the
+/// estimator; with `--perception pipeline`, to the stereo camera's topics.
 pub fn run_ros2(
     loaded: &Loaded,
     scene: &SceneConfig,
-    sensing: SensingConfig,
+    perception: MockPerception,
     seed: u64,
     ros: &Ros2Options,
     config: &DvrkConfig,
@@ -202,21 +242,32 @@ pub fn run_ros2(
     let timeout = Duration::from_secs_f64(config.connect_timeout_s);
     let oracle = Oracle::connect(ros, timeout).map_err(|e| {
         anyhow::anyhow!(
-            "{e}\nThe noise-model estimator, the scene's scoring and the supervisor's recovery \
-             come from `stitch sim-node` over ROS 2; a real dVRK has none of them (the stereo \
-             camera over ROS 2 is not built yet), so --robot ros2 runs against the sim-node only."
+            "{e}\nThe scene's scoring, the supervisor's recovery and the noise-model estimator \
+             come from `stitch sim-node` over ROS 2, and a real dVRK has none of them, so \
+             --robot ros2 runs against the sim-node only (the arms and, with --perception \
+             pipeline, the stereo camera go over the dVRK's own topics)."
         )
     })?;
     let oracle = Arc::new(oracle);
     let dvrk = Arc::new(Ros2Dvrk::connect(ros, config).context("cannot connect to the dVRK")?);
+    let (sensing, camera) = match perception {
+        MockPerception::Model(sensing) => (sensing, None),
+        MockPerception::Pipeline(camera) => (SensingConfig::default(), Some(camera)),
+    };
     oracle
         .call(Call::Reset {
             seed,
             scene: Box::new(scene.clone()),
             sensing,
+            camera: camera.clone(),
         })
         .map_err(anyhow::Error::msg)?;
     dvrk.wait_fresh(timeout)?;
+    let clock: Arc<dyn Clock> = Arc::new(WallClock::new());
+    let estimator: Box<dyn NeedleEstimator> = match &camera {
+        Some(c) => pipeline_estimator(ros, config, c, scene, &oracle, clock.clone(), seed)?,
+        None => Box::new(RemoteEstimator(Arc::clone(&oracle))),
+    };
     let arm = |i: usize| {
         dvrk.arm(i)
             .ok_or_else(|| anyhow::anyhow!("the dVRK configuration names no arm {i}"))
@@ -231,7 +282,7 @@ pub fn run_ros2(
         left: Arc::new(arm(1)?),
         right_jaw: Arc::new(jaw(0)?),
         left_jaw: Arc::new(jaw(1)?),
-        estimator: Box::new(RemoteEstimator(Arc::clone(&oracle))),
+        estimator,
         observer: Some(Box::new(RemoteObserver {
             oracle: Arc::clone(&oracle),
             lost: None,
@@ -250,14 +301,7 @@ pub fn run_ros2(
         }),
         Arc::clone(&plan),
     );
-    Ok(Runner::new(
-        plan,
-        &mut primitives,
-        &mut supervisor,
-        Arc::new(WallClock::new()),
-        Some(seed),
-    )
-    .run())
+    Ok(Runner::new(plan, &mut primitives, &mut supervisor, clock, Some(seed)).run())
 }
 
 /// `stitch bench ros2`.

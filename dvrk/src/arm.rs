@@ -43,6 +43,8 @@ pub struct DvrkConfig {
     /// `trajectory_j/set_ratio` sent at start: the fraction of the arm's top joint speed its
     /// trajectories use (low at a bench: 0.2).
     pub speed_ratio: f64,
+    /// The stereo camera's topics and what a capture accepts (`[camera]`).
+    pub camera: crate::camera::CameraSettings,
 }
 
 impl Default for DvrkConfig {
@@ -59,6 +61,7 @@ impl Default for DvrkConfig {
             rotation_tolerance_rad: 2f64.to_radians(),
             jaw_tolerance_rad: 5f64.to_radians(),
             speed_ratio: 0.2,
+            camera: crate::camera::CameraSettings::default(),
         }
     }
 }
@@ -104,7 +107,7 @@ impl DvrkConfig {
                 return bad("arms", format!("{a:?} is not a ROS 2 namespace"));
             }
         }
-        Ok(())
+        self.camera.validate()
     }
 }
 

@@ -2,6 +2,8 @@
 
 #[cfg(feature = "ros2")]
 pub mod arm;
+#[cfg(feature = "ros2")]
+pub mod camera;
 pub mod msg;
 #[cfg(feature = "ros2")]
 pub mod oracle;

@@ -154,6 +154,7 @@ pub struct Image {
     /// Bytes per row.
     pub step: u32,
     /// `step · height` bytes.
+    #[serde(with = "serde_bytes")]
     pub data: Vec<u8>,
 }
 

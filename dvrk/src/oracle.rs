@@ -17,7 +17,7 @@ use std::time::{Duration, Instant};
 use stitch_perception::PerceptionError;
 use stitch_primitives::FailureKind;
 use stitch_robot::{Pose, WoundPoint};
-use stitch_sim::{NeedlePlace, SceneConfig, SensingConfig};
+use stitch_sim::{CameraConfig, NeedlePlace, SceneConfig, SensingConfig};
 
 /// Requests to the simulator.
 pub const REQUEST_TOPIC: &str = "/stitch_sim/oracle/request";
@@ -38,7 +38,13 @@ pub enum Call {
         scene: Box<SceneConfig>,
         /// The estimator's noise model.
         sensing: SensingConfig,
+        /// The stereo camera to render (none: the mission uses the noise model).
+        #[serde(default)]
+        camera: Option<Box<CameraConfig>>,
     },
+    /// Render one stereo pair now and publish it on the camera topics; the answer is its
+    /// stamp ([`Answer::Frame`]).
+    Capture,
     /// One needle estimate from the mock's estimator.
     Estimate,
     /// Observer: an insertion begins.
@@ -110,6 +116,8 @@ pub enum Answer {
     Meters(f64),
     /// Holds per arm.
     Holds([u64; 2]),
+    /// The stamp of the pair just published.
+    Frame(crate::msg::Time),
 }
 
 /// A request.

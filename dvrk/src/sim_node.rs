@@ -12,7 +12,10 @@
 //! Wire faults ([`WireFault`]) make it misbehave as a dVRK can: publish an error and go to
 //! FAULT, stay busy, stamp its measurements stale or zero, or drop a command.
 
-use crate::msg::{self, Empty, Float64, JointState, OperatingState, PoseStamped, StringMsg};
+use crate::camera::{self, CameraSettings};
+use crate::msg::{
+    self, CameraInfo, Empty, Float64, Image, JointState, OperatingState, PoseStamped, StringMsg,
+};
 use crate::oracle::{self, Answer, Call, Reply, Request, WireEstimate, WirePass};
 use crate::ros2::{Bus, Ros2Options, Topic, latched_qos, now_stamp, stream_qos, types};
 use std::collections::VecDeque;
@@ -21,9 +24,11 @@ use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant};
 use stitch_perception::{ModelEstimator, NeedleEstimator};
-use stitch_primitives::{MockObserver, Observer};
-use stitch_robot::{Arm, Clock, Jaw, Pose, SimClock};
-use stitch_sim::{MockDvrk, SceneConfig, SensingConfig, Side, Streams};
+use stitch_primitives::{MockObserver, Observer, PIPELINE_FRAME_TIME_S};
+use stitch_robot::{Arm, Clock, Jaw, Pose, SimClock, StereoCalibration, StereoCamera};
+use stitch_sim::{
+    CameraConfig, MockCamera, MockDvrk, SceneConfig, SensingConfig, Side, StereoRenderer, Streams,
+};
 
 /// A way for the sim-node to misbehave, at the n-th motion command (`move_cp` or
 /// `jaw/move_jp`, both arms counted together, 1-based).
@@ -48,6 +53,8 @@ pub enum WireFaultKind {
     ZeroStamps,
     /// Ignore the command, as if it were lost.
     DropCommand,
+    /// From then on, the stereo camera publishes nothing.
+    CameraSilent,
 }
 
 impl std::str::FromStr for WireFault {
@@ -63,10 +70,11 @@ impl std::str::FromStr for WireFault {
             "stale-stamps" => WireFaultKind::StaleStamps,
             "zero-stamps" => WireFaultKind::ZeroStamps,
             "drop-command" => WireFaultKind::DropCommand,
+            "camera-silent" => WireFaultKind::CameraSilent,
             other => {
                 return Err(format!(
                     "wire fault {other:?}: expected arm-error, busy-stuck, stale-stamps, \
-                     zero-stamps or drop-command"
+                     zero-stamps, drop-command or camera-silent"
                 ));
             }
         };
@@ -98,6 +106,10 @@ pub struct SimNodeOptions {
     pub faults: Vec<WireFault>,
     /// The arms' namespaces: right, left.
     pub arms: [String; 2],
+    /// The first world's stereo camera (none until a client resets with one).
+    pub camera: Option<CameraConfig>,
+    /// The camera's topics (the client's defaults).
+    pub camera_topics: CameraSettings,
 }
 
 impl Default for SimNodeOptions {
@@ -111,6 +123,8 @@ impl Default for SimNodeOptions {
             rate_hz: 100.0,
             faults: Vec::new(),
             arms: ["PSM1".into(), "PSM2".into()],
+            camera: None,
+            camera_topics: CameraSettings::default(),
         }
     }
 }
@@ -152,10 +166,37 @@ struct ArmOut {
     error: Topic<StringMsg>,
 }
 
+struct CameraOut {
+    images: [Topic<Image>; 2],
+    infos: [Topic<CameraInfo>; 2],
+    /// The current camera's calibration, published as `camera_info` with every pair and
+    /// 10 times a second.
+    calibration: Mutex<Option<StereoCalibration>>,
+}
+
+/// The optical frames the pair is stamped in.
+const FRAMES: [&str; 2] = ["stitch_stereo_left_optical", "stitch_stereo_right_optical"];
+
+impl CameraOut {
+    fn publish_infos(&self, stamp: msg::Time) {
+        let c = self
+            .calibration
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone();
+        if let Some(c) = c {
+            for (i, topic) in self.infos.iter().enumerate() {
+                let _ = topic.publish(camera::camera_info_msg(&c, i == 1, stamp, FRAMES[i]));
+            }
+        }
+    }
+}
+
 struct Out {
     arms: Vec<ArmOut>,
     reply: Topic<StringMsg>,
     snapshot: Mutex<Snapshot>,
+    camera: CameraOut,
 }
 
 impl Out {
@@ -207,21 +248,48 @@ struct World {
     world: MockDvrk,
     estimator: ModelEstimator,
     observer: MockObserver,
+    /// The stereo camera, as the in-process mock builds it for `--perception pipeline`.
+    camera: Option<MockCamera>,
     holds: [u64; 2],
 }
 
 impl World {
-    fn new(seed: u64, scene: &SceneConfig, sensing: SensingConfig) -> Result<Self, String> {
+    fn new(
+        seed: u64,
+        scene: &SceneConfig,
+        sensing: SensingConfig,
+        camera: Option<&CameraConfig>,
+    ) -> Result<Self, String> {
         let streams = Streams::new(seed);
         let world = MockDvrk::new(scene, streams, SimClock::new()).map_err(|e| e.to_string())?;
         let estimator =
             ModelEstimator::new(world.clone(), sensing, streams).map_err(|e| e.to_string())?;
+        let camera = match camera {
+            Some(c) => {
+                let renderer = StereoRenderer::new(c.clone(), world.phantom_view())
+                    .map_err(|e| e.to_string())?;
+                Some(MockCamera::new(
+                    world.clone(),
+                    renderer,
+                    streams,
+                    Duration::from_secs_f64(PIPELINE_FRAME_TIME_S),
+                ))
+            }
+            None => None,
+        };
         Ok(Self {
             observer: MockObserver::new(world.clone()),
             estimator,
+            camera,
             world,
             holds: [0; 2],
         })
+    }
+
+    fn calibration(&self) -> Option<StereoCalibration> {
+        self.camera
+            .as_ref()
+            .map(|c| StereoCamera::calibration(c).clone())
     }
 }
 
@@ -246,7 +314,12 @@ pub fn serve(
             options.rate_hz
         ));
     }
-    let mut world = World::new(options.seed, &options.scene, options.sensing)?;
+    let mut world = World::new(
+        options.seed,
+        &options.scene,
+        options.sensing,
+        options.camera.as_ref(),
+    )?;
     let mut bus = Bus::new(&options.ros, "sim_node")?;
     let (tx, rx) = std::sync::mpsc::channel::<Cmd>();
     let mut arms = Vec::new();
@@ -270,10 +343,12 @@ pub fn serve(
             let _ = otx.send(cmd);
         },
     )?;
+    let camera = camera_topics(&mut bus, &options.camera_topics, world.calibration())?;
     let out = Arc::new(Out {
         arms,
         reply,
         snapshot: Mutex::new(snapshot(&world.world, Stamps::Now)),
+        camera,
     });
     let mut node = Node {
         out: Arc::clone(&out),
@@ -287,6 +362,7 @@ pub fn serve(
         ],
         motions: 0,
         stuck: false,
+        camera_silent: false,
         options: options.clone(),
         pending: VecDeque::new(),
     };
@@ -302,8 +378,13 @@ pub fn serve(
     );
     let publisher = std::thread::spawn(move || {
         let mut next = Instant::now();
+        let mut info_at = next;
         while p_on.load(Ordering::SeqCst) {
             p_out.publish_measurements();
+            if next >= info_at {
+                p_out.camera.publish_infos(now_stamp());
+                info_at = next + Duration::from_millis(100);
+            }
             next += period;
             let now = Instant::now();
             if next > now {
@@ -354,6 +435,25 @@ fn snapshot(world: &MockDvrk, stamps: Stamps) -> Snapshot {
         jaws: [jaw(Side::Right), jaw(Side::Left)],
         stamps,
     }
+}
+
+fn camera_topics(
+    bus: &mut Bus,
+    topics: &CameraSettings,
+    calibration: Option<StereoCalibration>,
+) -> Result<CameraOut, String> {
+    let q = camera::publisher_qos();
+    Ok(CameraOut {
+        images: [
+            bus.publisher(&topics.left_image, types::IMAGE, &q)?,
+            bus.publisher(&topics.right_image, types::IMAGE, &q)?,
+        ],
+        infos: [
+            bus.publisher(&topics.left_info, types::CAMERA_INFO, &q)?,
+            bus.publisher(&topics.right_info, types::CAMERA_INFO, &q)?,
+        ],
+        calibration: Mutex::new(calibration),
+    })
 }
 
 fn arm_topics(bus: &mut Bus, name: &str, i: usize, tx: &Sender<Cmd>) -> Result<ArmOut, String> {
@@ -425,6 +525,8 @@ struct Node {
     states: Vec<ArmState>,
     motions: u32,
     stuck: bool,
+    /// A `camera-silent` fault fired.
+    camera_silent: bool,
     options: SimNodeOptions,
     /// Commands that arrived while a motion was busy, in order.
     pending: VecDeque<Cmd>,
@@ -537,6 +639,12 @@ impl Node {
                 self.stuck = true;
                 self.set_busy(i, true);
                 return;
+            }
+            Some(WireFaultKind::CameraSilent) => {
+                log(&format!(
+                    "sim-node: wire fault: camera silent from motion {n}"
+                ));
+                self.camera_silent = true;
             }
             Some(WireFaultKind::StaleStamps) | Some(WireFaultKind::ZeroStamps) => {
                 let mode = if fault == Some(WireFaultKind::StaleStamps) {
@@ -690,11 +798,44 @@ impl Node {
                 seed,
                 scene,
                 sensing,
+                camera,
             } => {
-                *w = World::new(seed, &scene, sensing)?;
+                *w = World::new(seed, &scene, sensing, camera.as_deref())?;
+                *self
+                    .out
+                    .camera
+                    .calibration
+                    .lock()
+                    .unwrap_or_else(PoisonError::into_inner) = w.calibration();
                 self.refresh(w);
-                log(&format!("sim-node: reset to seed {seed}"));
+                log(&format!(
+                    "sim-node: reset to seed {seed}{}",
+                    if camera.is_some() {
+                        ", with the stereo camera"
+                    } else {
+                        ""
+                    }
+                ));
                 Answer::Done
+            }
+            Call::Capture => {
+                let Some(camera) = &w.camera else {
+                    return Err("no stereo camera: reset with one first".into());
+                };
+                if self.camera_silent {
+                    return Ok(Answer::Frame(now_stamp()));
+                }
+                let pair = camera.capture_with_truth();
+                // Stamped when the pair exists, as a camera stamps at exposure.
+                let stamp = now_stamp();
+                let c = &self.out.camera;
+                for (i, image) in [&pair.left, &pair.right].into_iter().enumerate() {
+                    c.images[i]
+                        .publish(camera::image_msg(image, stamp, FRAMES[i]))
+                        .map_err(|e| format!("cannot publish the pair: {e}"))?;
+                }
+                c.publish_infos(stamp);
+                Answer::Frame(stamp)
             }
             Call::Estimate => {
                 Answer::Estimate(w.estimator.estimate_needle().map(|e| WireEstimate {

@@ -16,7 +16,7 @@ use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use std::sync::Arc;
 use stitch_perception::{
-    JawHint, NeedleEnd, NeedleEstimate, NeedleEstimator, NeedleHint, TissueHint,
+    JawHint, NeedleEnd, NeedleEstimate, NeedleEstimator, NeedleHint, PerceptionError, TissueHint,
 };
 use stitch_robot::nalgebra::{Rotation3, Translation3, Unit, UnitQuaternion};
 use stitch_robot::{Arm, Jaw, MoveHandle, Needle, Point, Pose, RobotError, Vector, WoundPoint};
@@ -297,10 +297,23 @@ impl RobotPrimitives {
         })
     }
 
+    /// One estimator cycle: an estimate, or none this cycle (nothing seen, too uncertain);
+    /// a camera that fails (no frames, unusable images) is a fault of the robot, not a
+    /// needle out of sight, and stops the step.
+    fn sample(&mut self, hint: Option<&NeedleHint>) -> Step<Option<NeedleEstimate>> {
+        match self.rig.estimator.estimate_needle_with(hint) {
+            Ok(e) => Ok(Some(e)),
+            Err(PerceptionError::Camera { message }) => Err(failed(FailureKind::ArmFault {
+                message: format!("perception: {message}"),
+            })),
+            Err(_) => Ok(None),
+        }
+    }
+
     /// A needle estimate with this hint, waiting up to [`ESTIMATE_TRIES`] cycles.
     fn estimate_with(&mut self, hint: Option<NeedleHint>) -> Step<NeedleEstimate> {
         for _ in 0..ESTIMATE_TRIES {
-            if let Ok(e) = self.rig.estimator.estimate_needle_with(hint.as_ref()) {
+            if let Some(e) = self.sample(hint.as_ref())? {
                 return Ok(e);
             }
         }
@@ -333,7 +346,7 @@ impl RobotPrimitives {
                 let mut grasps = vec![tool.inverse() * self.estimate(RIGHT_AT_SWAGE)?.pose];
                 let hint = self.held_hint(Hand::Right, NeedleEnd::Swage);
                 for _ in 1..p.samples.max(1) {
-                    if let Ok(e) = self.rig.estimator.estimate_needle_with(hint.as_ref()) {
+                    if let Some(e) = self.sample(hint.as_ref())? {
                         grasps.push(tool.inverse() * e.pose);
                     }
                 }
@@ -590,7 +603,7 @@ impl RobotPrimitives {
         let hint = self.held_hint(Hand::Right, NeedleEnd::Swage);
         let mut grasps = Vec::new();
         for _ in 0..p.samples.max(1) {
-            if let Ok(e) = self.rig.estimator.estimate_needle_with(hint.as_ref()) {
+            if let Some(e) = self.sample(hint.as_ref())? {
                 grasps.push(to_corner.inverse() * e.pose);
             }
         }
