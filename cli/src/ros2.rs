@@ -192,6 +192,22 @@ impl Observer for RemoteObserver {
     }
 }
 
+/// The simulator's camera trigger, over the side channel.
+struct SimTrigger(Arc<Oracle>);
+
+impl Trigger for SimTrigger {
+    fn fire(&self) -> Result<stitch_dvrk::msg::Time, String> {
+        match self.0.call(Call::Capture)? {
+            Answer::Frame(stamp) => Ok(stamp),
+            other => Err(format!("the simulator answered {other:?} to a capture")),
+        }
+    }
+
+    fn resend(&self, stamp: stitch_dvrk::msg::Time) -> Result<(), String> {
+        self.0.call(Call::Resend { stamp }).map(|_| ())
+    }
+}
+
 /// The stereo camera over ROS 2 with the pipeline on its pairs, as the in-process mock runs
 /// it for `--perception pipeline`: the calibration from `camera_info`, the hand-eye pose
 /// from the configuration or else the simulated camera's own, each capture triggered over
@@ -209,16 +225,11 @@ fn pipeline_estimator(
         Some(h) => h.pose().map_err(anyhow::Error::msg)?,
         None => camera.camera_to_robot(),
     };
-    let o = Arc::clone(oracle);
-    let trigger: Trigger = Box::new(move || match o.call(Call::Capture)? {
-        Answer::Frame(stamp) => Ok(stamp),
-        other => Err(format!("the simulator answered {other:?} to a capture")),
-    });
     let camera = Ros2Camera::connect(
         ros,
         &config.camera,
         camera_to_robot,
-        Some(trigger),
+        Some(Box::new(SimTrigger(Arc::clone(oracle)))),
         clock,
         Duration::from_secs_f64(config.connect_timeout_s),
     )

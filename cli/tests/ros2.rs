@@ -195,9 +195,67 @@ fn missions_over_ros2_match_the_in_process_mock_seed_for_seed() {
     assert!(log.contains("trajectory speed ratio 0.2"), "{log}");
 }
 
+#[test]
+fn pipeline_missions_over_ros2_match_the_in_process_mock_seed_for_seed() {
+    let _one = serial();
+    // The stereo pairs go over the camera topics (rendered by the sim-node on each capture's
+    // trigger), the pipeline runs here on what arrived: same outcomes as in process.
+    let runs: u64 = std::env::var("STITCH_ROS2_PIPELINE_RUNS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(2);
+    let d = domain(8);
+    let node = SimNode::start(&d, &[]);
+    for i in 0..runs {
+        let seed = (i + 1).to_string();
+        let plan = if i % 2 == 1 {
+            "scripts/stitch_human.rhai"
+        } else {
+            "scripts/stitch.rhai"
+        };
+        let p = ["--perception", "pipeline"];
+        let (a, b) = (
+            tmp(&format!("mock-pipeline-{i}.jsonl")),
+            tmp(&format!("ros2-pipeline-{i}.jsonl")),
+        );
+        let mock = run(
+            &[&[plan, "--seed", &seed][..], &p].concat(),
+            &a,
+            Duration::from_secs(60),
+        );
+        let wire = run(
+            &[
+                &[plan, "--seed", &seed, "--robot", "ros2", "--domain-id", &d][..],
+                &p,
+            ]
+            .concat(),
+            &b,
+            Duration::from_secs(120),
+        );
+        assert!(matches!(mock.code, Some(0 | 4)), "{}", mock.out);
+        assert_eq!(
+            wire.code,
+            mock.code,
+            "run {i} ({plan}, seed {seed}): {}\nsim-node:\n{}",
+            wire.out,
+            node.log()
+        );
+        let (m, w) = (untimed(&mock.journal), untimed(&wire.journal));
+        assert!(m.len() > 5, "{}", mock.journal);
+        assert_eq!(w, m, "run {i} ({plan}, seed {seed}): the journals differ");
+    }
+    let log = node.log();
+    assert!(log.contains("with the stereo camera"), "{log}");
+}
+
 /// Run STITCH against a sim-node that misbehaves so; the run must fail (exit 4) with
 /// `expect` in its journal, and the journal must record the hold.
 fn faulted(k: u16, node_args: &[&str], expect: &str) -> (Ran, SimNode) {
+    faulted_with(k, node_args, &[], expect)
+}
+
+/// [`faulted`], with more arguments to `stitch run`.
+fn faulted_with(k: u16, node_args: &[&str], run_args: &[&str], expect: &str) -> (Ran, SimNode) {
     let d = domain(k);
     let node = SimNode::start(&d, node_args);
     let config = tmp(&format!("dvrk-{k}.toml"));
@@ -205,14 +263,18 @@ fn faulted(k: u16, node_args: &[&str], expect: &str) -> (Ran, SimNode) {
     let journal = tmp(&format!("fault-{k}.jsonl"));
     let ran = run(
         &[
-            "scripts/stitch.rhai",
-            "--robot",
-            "ros2",
-            "--domain-id",
-            &d,
-            "--dvrk-config",
-            config.to_str().expect("utf-8"),
-        ],
+            &[
+                "scripts/stitch.rhai",
+                "--robot",
+                "ros2",
+                "--domain-id",
+                &d,
+                "--dvrk-config",
+                config.to_str().expect("utf-8"),
+            ][..],
+            run_args,
+        ]
+        .concat(),
         &journal,
         Duration::from_secs(60),
     );
@@ -300,6 +362,18 @@ fn a_dropped_command_is_caught_and_the_arms_held() {
 }
 
 #[test]
+fn a_silent_camera_is_a_fault_named_so_not_a_needle_out_of_sight() {
+    let _one = serial();
+    let (_, node) = faulted_with(
+        9,
+        &["--wire-fault", "camera-silent@3"],
+        &["--perception", "pipeline"],
+        "perception: stereo camera: fault: no triggered pair within 2.0 s",
+    );
+    held_both(&node);
+}
+
+#[test]
 fn a_sim_node_killed_mid_move_is_caught_and_the_run_ends_holding() {
     let _one = serial();
     let d = domain(6);
@@ -375,6 +449,20 @@ fn bad_ros2_settings_are_refused_with_the_reason() {
     );
     assert_eq!(ran.code, Some(1), "{}", ran.out);
     assert!(ran.out.contains("dvrk.stale_after_s"), "{}", ran.out);
+    std::fs::write(&bad, "[camera]\nleft_image = \"left\"\n").expect("config");
+    let ran = run(
+        &[
+            "scripts/stitch.rhai",
+            "--robot",
+            "ros2",
+            "--dvrk-config",
+            bad.to_str().expect("utf-8"),
+        ],
+        &tmp("bad-camera.jsonl"),
+        Duration::from_secs(30),
+    );
+    assert_eq!(ran.code, Some(1), "{}", ran.out);
+    assert!(ran.out.contains("dvrk.camera.left_image"), "{}", ran.out);
     let ran = run(
         &[
             "scripts/stitch.rhai",

@@ -37,12 +37,15 @@ pub struct CameraSettings {
     pub right_image: String,
     /// The right camera's `CameraInfo`.
     pub right_info: String,
-    /// Subscribe reliable (matches reliable publishers only, as `image_transport`'s default
-    /// is) or best effort (matches any publisher, a driver on the sensor-data profile too).
+    /// Subscribe best effort (`false`, the default: matches every publisher, reliable or
+    /// not; a frame that loses a fragment on the way is dropped, not repaired, and the next
+    /// one is taken) or reliable (matches reliable publishers only; repairs take up to a
+    /// heartbeat period, about a second, for a large image).
     pub reliable: bool,
     /// How long a capture waits for its pair.
     pub capture_timeout_s: f64,
-    /// Images older than this by stamp are refused.
+    /// Streamed images older than this by stamp are refused (a triggered pair is the one
+    /// asked for).
     pub stale_after_s: f64,
     /// How far apart the left and right stamps of one pair may be.
     pub max_pair_skew_s: f64,
@@ -58,7 +61,7 @@ impl Default for CameraSettings {
             left_info: "/stereo/left/camera_info".into(),
             right_image: "/stereo/right/image_rect_color".into(),
             right_info: "/stereo/right/camera_info".into(),
-            reliable: true,
+            reliable: false,
             capture_timeout_s: 2.0,
             stale_after_s: 1.0,
             max_pair_skew_s: 0.02,
@@ -379,9 +382,18 @@ pub fn calibration_from_info(
     Ok(calibration)
 }
 
-/// Makes the camera publish one pair and names its stamp (the simulator's; a real camera
-/// streams and needs none).
-pub type Trigger = Box<dyn Fn() -> Result<msg::Time, String> + Send + Sync>;
+/// Makes the camera publish a pair on demand (the simulator's; a real camera streams and
+/// needs none).
+pub trait Trigger: Send + Sync {
+    /// Publish a new pair; its stamp.
+    fn fire(&self) -> Result<msg::Time, String>;
+    /// Publish the pair stamped `stamp` again: it did not arrive whole (a best-effort reader
+    /// is not repaired). The same pair, so a simulated run stays deterministic.
+    fn resend(&self, stamp: msg::Time) -> Result<(), String>;
+}
+
+/// How long a capture waits for a triggered pair before asking for it again.
+pub const RESEND_AFTER: Duration = Duration::from_millis(250);
 
 /// What the camera's topics said, as the bus thread received it.
 #[derive(Debug, Default)]
@@ -396,7 +408,7 @@ pub struct Ros2Camera {
     calibration: StereoCalibration,
     settings: CameraSettings,
     heard: Arc<(Mutex<Heard>, Condvar)>,
-    trigger: Option<Trigger>,
+    trigger: Option<Box<dyn Trigger>>,
     clock: Arc<dyn Clock>,
     _bus: Bus,
 }
@@ -426,7 +438,7 @@ impl Ros2Camera {
         options: &Ros2Options,
         settings: &CameraSettings,
         camera_to_robot: Pose,
-        trigger: Option<Trigger>,
+        trigger: Option<Box<dyn Trigger>>,
         clock: Arc<dyn Clock>,
         timeout: Duration,
     ) -> Result<Self, RobotError> {
@@ -487,7 +499,7 @@ impl Ros2Camera {
                     " and publishing reliable (a best-effort publisher needs \
                      dvrk.camera.reliable = false)"
                 } else {
-                    ""
+                    " (and are the topic names right: dvrk.camera.left_info, right_info)"
                 },
                 h.unreadable
                     .as_ref()
@@ -565,12 +577,13 @@ impl StereoCamera for Ros2Camera {
     fn capture(&self) -> Result<StereoFrame, RobotError> {
         let s = &self.settings;
         let asked = Instant::now();
+        let refused = |e: String| camera_fault(format!("capture refused: {e}"));
         let expected = match &self.trigger {
-            Some(t) => Some(t().map_err(|e| camera_fault(format!("capture refused: {e}")))?),
+            Some(t) => Some(t.fire().map_err(refused)?),
             None => None,
         };
         let deadline = asked + Duration::from_secs_f64(s.capture_timeout_s);
-        let pair = wait(&self.heard, deadline, |h| {
+        let matching = |h: &Heard| {
             let [Some((l, lt)), Some((r, rt))] = &h.images else {
                 return None;
             };
@@ -584,7 +597,20 @@ impl StereoCamera for Ros2Camera {
                 }
             };
             ok.then(|| (l.clone(), r.clone()))
-        });
+        };
+        let pair = match (&self.trigger, expected) {
+            (Some(t), Some(stamp)) => loop {
+                let until = (Instant::now() + RESEND_AFTER).min(deadline);
+                if let Some(p) = wait(&self.heard, until, matching) {
+                    break Some(p);
+                }
+                if Instant::now() >= deadline {
+                    break None;
+                }
+                t.resend(stamp).map_err(refused)?;
+            },
+            _ => wait(&self.heard, deadline, matching),
+        };
         let Some((left, right)) = pair else {
             let h = lock(&self.heard);
             let got = |i: usize, topic: &str| match &h.images[i] {
@@ -617,7 +643,8 @@ impl StereoCamera for Ros2Camera {
             ));
         }
         let age_s = stamp_age_s(&left.header.stamp).max(stamp_age_s(&right.header.stamp));
-        if age_s > s.stale_after_s {
+        // A triggered pair is the one asked for, however long it took to arrive whole.
+        if expected.is_none() && age_s > s.stale_after_s {
             return Err(RobotError::Stale {
                 arm: "stereo camera".into(),
                 age_s,

@@ -45,6 +45,11 @@ pub enum Call {
     /// Render one stereo pair now and publish it on the camera topics; the answer is its
     /// stamp ([`Answer::Frame`]).
     Capture,
+    /// Publish the pair stamped so again (it did not arrive whole).
+    Resend {
+        /// The pair's stamp.
+        stamp: crate::msg::Time,
+    },
     /// One needle estimate from the mock's estimator.
     Estimate,
     /// Observer: an insertion begins.

@@ -363,6 +363,7 @@ pub fn serve(
         motions: 0,
         stuck: false,
         camera_silent: false,
+        last_pair: None,
         options: options.clone(),
         pending: VecDeque::new(),
     };
@@ -527,6 +528,8 @@ struct Node {
     stuck: bool,
     /// A `camera-silent` fault fired.
     camera_silent: bool,
+    /// The last pair published, for a resend.
+    last_pair: Option<(msg::Time, [Image; 2])>,
     options: SimNodeOptions,
     /// Commands that arrived while a motion was busy, in order.
     pending: VecDeque<Cmd>,
@@ -758,6 +761,24 @@ impl Node {
         }
     }
 
+    /// Publish the last pair and its camera info (nothing once the camera is silent).
+    fn publish_pair(&self) -> Result<(), String> {
+        let Some((stamp, images)) = &self.last_pair else {
+            return Ok(());
+        };
+        if self.camera_silent {
+            return Ok(());
+        }
+        let c = &self.out.camera;
+        for (topic, image) in c.images.iter().zip(images) {
+            topic
+                .publish(image.clone())
+                .map_err(|e| format!("cannot publish the pair: {e}"))?;
+        }
+        c.publish_infos(*stamp);
+        Ok(())
+    }
+
     fn state_command(&mut self, i: usize, command: &str, log: &mut dyn FnMut(&str)) {
         log(&format!(
             "sim-node: /{} state_command {command}",
@@ -822,20 +843,27 @@ impl Node {
                 let Some(camera) = &w.camera else {
                     return Err("no stereo camera: reset with one first".into());
                 };
-                if self.camera_silent {
-                    return Ok(Answer::Frame(now_stamp()));
-                }
                 let pair = camera.capture_with_truth();
                 // Stamped when the pair exists, as a camera stamps at exposure.
                 let stamp = now_stamp();
-                let c = &self.out.camera;
-                for (i, image) in [&pair.left, &pair.right].into_iter().enumerate() {
-                    c.images[i]
-                        .publish(camera::image_msg(image, stamp, FRAMES[i]))
-                        .map_err(|e| format!("cannot publish the pair: {e}"))?;
-                }
-                c.publish_infos(stamp);
+                let images = [
+                    camera::image_msg(&pair.left, stamp, FRAMES[0]),
+                    camera::image_msg(&pair.right, stamp, FRAMES[1]),
+                ];
+                self.last_pair = Some((stamp, images));
+                self.publish_pair()?;
                 Answer::Frame(stamp)
+            }
+            Call::Resend { stamp } => {
+                match &self.last_pair {
+                    Some((t, _)) if *t == stamp => self.publish_pair()?,
+                    _ => return Err(format!("no pair stamped {stamp:?} to resend")),
+                }
+                log(&format!(
+                    "sim-node: resent the pair stamped {:.3} s",
+                    stamp.as_secs_f64()
+                ));
+                Answer::Done
             }
             Call::Estimate => {
                 Answer::Estimate(w.estimator.estimate_needle().map(|e| WireEstimate {
