@@ -380,7 +380,17 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
                 write!(
                     out,
                     "{}",
-                    show::timeline(&loaded.plan, &report, &source, robot_name(robot))
+                    show::timeline(
+                        &loaded.plan,
+                        &report,
+                        &source,
+                        robot_name(robot),
+                        if robot == RobotKind::Ros2 {
+                            "wall time"
+                        } else {
+                            "simulated time"
+                        }
+                    )
                 )?;
             }
             Ok(match report.outcome {

@@ -62,7 +62,7 @@ pub struct SimNodeArgs {
     pub rate_hz: f64,
     /// Misbehave as a dVRK can, at the N-th motion command: arm-error@N (error, then FAULT),
     /// busy-stuck@N, stale-stamps@N, zero-stamps@N (every measurement from then on),
-    /// drop-command@N. Repeatable.
+    /// drop-command@N, camera-silent@N (no stereo images from then on). Repeatable.
     #[arg(long = "wire-fault", value_name = "KIND@N")]
     pub wire_faults: Vec<WireFault>,
 }
@@ -323,6 +323,9 @@ pub struct BenchRos2Args {
     /// Seconds streamed at each rate.
     #[arg(long, default_value_t = 5.0)]
     pub seconds: f64,
+    /// Stereo pairs captured over ROS 2 and, for the baseline, in process.
+    #[arg(long, default_value_t = 40)]
+    pub pairs: usize,
     /// Print JSON instead of a table.
     #[arg(long)]
     pub json: bool,
@@ -339,15 +342,94 @@ struct StreamStats {
     max_us: f64,
 }
 
+/// Capture times of stereo pairs, ms.
+#[derive(Debug, serde::Serialize)]
+struct PairStats {
+    pairs: usize,
+    median_ms: f64,
+    p99_ms: f64,
+    max_ms: f64,
+}
+
+impl PairStats {
+    fn of(mut ms: Vec<f64>) -> Self {
+        ms.sort_by(f64::total_cmp);
+        let at = |q: f64| {
+            ms.get(((ms.len() as f64 - 1.0) * q).round() as usize)
+                .copied()
+                .unwrap_or(f64::NAN)
+        };
+        Self {
+            pairs: ms.len(),
+            median_ms: at(0.5),
+            p99_ms: at(0.99),
+            max_ms: at(1.0),
+        }
+    }
+}
+
+/// Time `n` captures of the mock's stereo pair: rendered in process (the baseline), and
+/// over ROS 2 from the sim-node on `ros` (trigger, render, two 1280×960 images over DDS,
+/// conversion), both on the default scene and camera.
+fn bench_pairs(ros: &Ros2Options, n: usize) -> anyhow::Result<(PairStats, PairStats)> {
+    use stitch_primitives::PIPELINE_FRAME_TIME_S;
+    use stitch_sim::{MockCamera, MockDvrk, StereoRenderer};
+    let camera = CameraConfig::default();
+    let scene = SceneConfig::default();
+    let world = MockDvrk::new(&scene, Streams::new(1), stitch_robot::SimClock::new())?;
+    let renderer = StereoRenderer::new(camera.clone(), world.phantom_view())?;
+    let local = MockCamera::new(
+        world,
+        renderer,
+        Streams::new(1),
+        Duration::from_secs_f64(PIPELINE_FRAME_TIME_S),
+    );
+    let mut in_process = Vec::new();
+    for _ in 0..n {
+        let t = std::time::Instant::now();
+        std::hint::black_box(local.capture()?);
+        in_process.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    let timeout = Duration::from_secs(15);
+    let oracle = Arc::new(Oracle::connect(ros, timeout).map_err(anyhow::Error::msg)?);
+    oracle
+        .call(Call::Reset {
+            seed: 1,
+            scene: Box::new(scene),
+            sensing: SensingConfig::default(),
+            camera: Some(Box::new(camera.clone())),
+        })
+        .map_err(anyhow::Error::msg)?;
+    let remote = Ros2Camera::connect(
+        ros,
+        &stitch_dvrk::camera::CameraSettings::default(),
+        camera.camera_to_robot(),
+        Some(Box::new(SimTrigger(Arc::clone(&oracle)))),
+        Arc::new(WallClock::new()),
+        timeout,
+    )?;
+    let mut over_ros2 = Vec::new();
+    for _ in 0..n {
+        let t = std::time::Instant::now();
+        std::hint::black_box(remote.capture()?);
+        over_ros2.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    Ok((PairStats::of(in_process), PairStats::of(over_ros2)))
+}
+
 /// Stream `servo_cp` to a sim-node served in this process over real DDS on loopback, at
 /// 100 Hz (the baseline: the dVRK's state rate) and at 1 kHz, and measure each command's
-/// one-way latency (the sim-node's receive time minus the command's stamp, one clock).
+/// one-way latency (the sim-node's receive time minus the command's stamp, one clock); then
+/// time stereo pairs captured over ROS 2 against the same pairs rendered in process.
 pub fn bench(args: BenchRos2Args) -> anyhow::Result<u8> {
     use std::sync::atomic::Ordering;
     use stitch_dvrk::sim_node::SERVO_LATENCIES;
     use stitch_robot::Arm;
     if !(args.seconds.is_finite() && (0.1..=600.0).contains(&args.seconds)) {
         anyhow::bail!("--seconds {}: expected 0.1 to 600", args.seconds);
+    }
+    if !(1..=10_000).contains(&args.pairs) {
+        anyhow::bail!("--pairs {}: expected 1 to 10000", args.pairs);
     }
     let ros = args.ros.options()?;
     let stop = Arc::new(AtomicBool::new(false));
@@ -405,12 +487,20 @@ pub fn bench(args: BenchRos2Args) -> anyhow::Result<u8> {
             max_us: at(1.0),
         });
     }
+    let pairs = bench_pairs(&ros, args.pairs);
     stop.store(true, Ordering::SeqCst);
     drop(arm);
     drop(dvrk);
     let _ = node.join();
+    let (in_process, over_ros2) = pairs?;
     if args.json {
-        println!("{}", serde_json::to_string_pretty(&rows)?);
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&serde_json::json!({
+                "servo_cp": rows,
+                "stereo_pair": { "in_process": in_process, "over_ros2": over_ros2 },
+            }))?
+        );
     } else {
         println!(
             "servo_cp over ROS 2 (DDS on loopback, reliable, keep last 10), ROS_DOMAIN_ID {}:",
@@ -430,6 +520,21 @@ pub fn bench(args: BenchRos2Args) -> anyhow::Result<u8> {
                 fast.p99_us / base.p99_us
             );
         }
+        println!(
+            "stereo pair capture, 1280×960 rgb8 ×2 (over ROS 2: trigger, render, DDS, convert):"
+        );
+        println!("  where         pairs   median      p99      max");
+        for (name, p) in [("in process", &in_process), ("over ROS 2", &over_ros2)] {
+            println!(
+                "  {name:<12} {:>6} {:>6.1} ms {:>5.1} ms {:>5.1} ms",
+                p.pairs, p.median_ms, p.p99_ms, p.max_ms
+            );
+        }
+        println!(
+            "  over ROS 2 / in process: median {:.2}×, p99 {:.2}×",
+            over_ros2.median_ms / in_process.median_ms,
+            over_ros2.p99_ms / in_process.p99_ms
+        );
     }
     Ok(crate::exit::OK)
 }

@@ -97,8 +97,8 @@ fn outcome_text(o: &StepOutcome) -> String {
     }
 }
 
-/// A per-throw timeline of a run and its final outcome.
-pub fn timeline(plan: &Plan, report: &Report, source: &str, robot: &str) -> String {
+/// A per-throw timeline of a run and its final outcome; `clock` names the run's time ("simulated time" on the mock, "wall time" over ROS 2).
+pub fn timeline(plan: &Plan, report: &Report, source: &str, robot: &str, clock: &str) -> String {
     let mut s = String::new();
     let _ = writeln!(s, "{} on {robot}, {source}", plan.name);
     for (i, t) in report.throws.iter().enumerate() {
@@ -165,7 +165,7 @@ pub fn timeline(plan: &Plan, report: &Report, source: &str, robot: &str) -> Stri
     let _ = writeln!(s, "outcome: {outcome}");
     let _ = writeln!(
         s,
-        "sutures completed: {done} of {}; interventions {} of {}; simulated time {:.1} s",
+        "sutures completed: {done} of {}; interventions {} of {}; {clock} {:.1} s",
         plan.throws.len(),
         report.interventions,
         plan.interventions.min(caps::INTERVENTIONS),

@@ -5,12 +5,16 @@
 //! at a fixed rate (100 Hz by default, and at once after every motion), `operating_state`
 //! (latched, on every change) and `error`; it takes `move_cp`, `servo_cp`, `jaw/move_jp`,
 //! `hold`, `state_command` and `trajectory_j/set_ratio`. Arms start DISABLED and unhomed, as
-//! a console does. A motion runs in the mock at once and is reported busy for its simulated
+//! a console does. With a stereo camera (a client's reset asks for one), it publishes
+//! `camera_info` for both sides 10 times a second, and a rendered pair (two `rgb8`
+//! `sensor_msgs/Image`s and their `camera_info`, one stamp) on each capture trigger of the
+//! side channel, as the in-process mock renders one per capture. A motion runs in the mock at once and is reported busy for its simulated
 //! duration divided by the time scale (so missions run faster than real time), then idle.
 //! Beside the CRTK topics it answers the simulator's side channel ([`crate::oracle`]).
 //!
 //! Wire faults ([`WireFault`]) make it misbehave as a dVRK can: publish an error and go to
-//! FAULT, stay busy, stamp its measurements stale or zero, or drop a command.
+//! FAULT, stay busy, stamp its measurements stale or zero, drop a command, or let the camera
+//! fall silent.
 
 use crate::camera::{self, CameraSettings};
 use crate::msg::{
