@@ -538,3 +538,68 @@ pub fn bench(args: BenchRos2Args) -> anyhow::Result<u8> {
     }
     Ok(crate::exit::OK)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The settings file shown in docs/dvrk.md, its commented hand-eye line included.
+    fn documented_settings() -> String {
+        let doc = include_str!("../../docs/dvrk.md");
+        let block = doc
+            .split("### Settings: `--dvrk-config FILE`")
+            .nth(1)
+            .and_then(|rest| rest.split("```toml\n").nth(1))
+            .and_then(|rest| rest.split("```").next())
+            .expect("docs/dvrk.md shows a settings file");
+        block.replace("# camera_to_robot", "camera_to_robot")
+    }
+
+    #[test]
+    fn the_documented_settings_file_is_valid_and_says_the_defaults() {
+        let path = std::env::temp_dir().join(format!("dvrk-doc-{}.toml", std::process::id()));
+        std::fs::write(&path, documented_settings()).expect("write");
+        let read = read_dvrk_config(Some(&path)).expect("the documented file is valid");
+        let _ = std::fs::remove_file(&path);
+        let d = DvrkConfig::default();
+        let hand_eye = read.camera.camera_to_robot.expect("the hand-eye line");
+        let pose = hand_eye.pose().expect("a pose");
+        // 180° about x: the camera's optical axis (z) points down.
+        let z = pose.rotation * stitch_robot::Vector::z();
+        assert!((z - -stitch_robot::Vector::z()).norm() < 1e-12, "{z}");
+        assert_eq!(
+            stitch_dvrk::camera::CameraSettings {
+                camera_to_robot: None,
+                ..read.camera.clone()
+            },
+            d.camera,
+            "the documented camera settings are the defaults"
+        );
+        for (name, doc, default) in [
+            (
+                "connect_timeout_s",
+                read.connect_timeout_s,
+                d.connect_timeout_s,
+            ),
+            ("stale_after_s", read.stale_after_s, d.stale_after_s),
+            ("move_timeout_s", read.move_timeout_s, d.move_timeout_s),
+            ("speed_ratio", read.speed_ratio, d.speed_ratio),
+            (
+                "rotation_tolerance_rad",
+                read.rotation_tolerance_rad,
+                d.rotation_tolerance_rad,
+            ),
+            (
+                "jaw_tolerance_rad",
+                read.jaw_tolerance_rad,
+                d.jaw_tolerance_rad,
+            ),
+        ] {
+            assert!(
+                (doc - default).abs() < 1e-4,
+                "{name}: documented {doc}, default {default}"
+            );
+        }
+        assert_eq!(read.arms, d.arms);
+    }
+}
