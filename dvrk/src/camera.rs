@@ -453,27 +453,16 @@ impl Ros2Camera {
         .into_iter()
         .enumerate()
         {
-            let h = Arc::clone(&heard);
-            bus.subscribe::<Image, _>(image, types::IMAGE, &qos, move |r| {
-                let (m, cv) = &*h;
-                let mut m = m.lock().unwrap_or_else(PoisonError::into_inner);
-                match r {
-                    Ok(msg) => m.images[side] = Some((msg, Instant::now())),
-                    Err(e) => m.unreadable = Some(e),
-                }
-                cv.notify_all();
-            })
-            .map_err(camera_fault)?;
-            let h = Arc::clone(&heard);
-            bus.subscribe::<CameraInfo, _>(info, types::CAMERA_INFO, &qos, move |r| {
-                let (m, cv) = &*h;
-                let mut m = m.lock().unwrap_or_else(PoisonError::into_inner);
-                match r {
-                    Ok(msg) => m.infos[side] = Some((msg, Instant::now())),
-                    Err(e) => m.unreadable = Some(e),
-                }
-                cv.notify_all();
-            })
+            let keep_image = move |h: &mut Heard, m| h.images[side] = Some((m, Instant::now()));
+            let keep_info = move |h: &mut Heard, m| h.infos[side] = Some((m, Instant::now()));
+            bus.subscribe::<Image, _>(image, types::IMAGE, &qos, keeper(&heard, keep_image))
+                .map_err(camera_fault)?;
+            bus.subscribe::<CameraInfo, _>(
+                info,
+                types::CAMERA_INFO,
+                &qos,
+                keeper(&heard, keep_info),
+            )
             .map_err(camera_fault)?;
         }
         let deadline = Instant::now() + timeout;
@@ -539,6 +528,23 @@ impl Ros2Camera {
             }
         }
         Ok(())
+    }
+}
+
+/// A subscription handler that keeps each message with `keep` (or the reason it could not be
+/// read) and wakes the waiters.
+fn keeper<M>(
+    heard: &Arc<(Mutex<Heard>, Condvar)>,
+    keep: impl Fn(&mut Heard, M) + Send + 'static,
+) -> impl FnMut(Result<M, String>) + Send + 'static {
+    let heard = Arc::clone(heard);
+    move |r| {
+        let mut h = lock(&heard);
+        match r {
+            Ok(m) => keep(&mut h, m),
+            Err(e) => h.unreadable = Some(e),
+        }
+        heard.1.notify_all();
     }
 }
 
