@@ -150,83 +150,37 @@ fn untimed(journal: &str) -> Vec<serde_json::Value> {
         .collect()
 }
 
-#[test]
-fn missions_over_ros2_match_the_in_process_mock_seed_for_seed() {
-    let _one = serial();
-    // STITCH_ROS2_RUNS=20 for the acceptance's twenty in a row.
-    let runs: u64 = std::env::var("STITCH_ROS2_RUNS")
+/// Missions in process and over ROS 2 against one sim-node on domain `k`: seeds 1 to the
+/// runs `runs_var` says (else `default_runs`), STITCH and, every `human_every`-th,
+/// STITCH + Human, `extra` given to both. Each pair must end alike with journals equal but
+/// for their times. The sim-node, for its log.
+fn twins(k: u16, runs_var: &str, default_runs: u64, human_every: u64, extra: &[&str]) -> SimNode {
+    let runs: u64 = std::env::var(runs_var)
         .ok()
         .and_then(|v| v.parse().ok())
-        .unwrap_or(3);
-    let d = domain(0);
+        .unwrap_or(default_runs);
+    let d = domain(k);
     let node = SimNode::start(&d, &[]);
     for i in 0..runs {
         let seed = (i + 1).to_string();
-        let plan = if i % 3 == 2 {
+        let plan = if i % human_every == human_every - 1 {
             "scripts/stitch_human.rhai"
         } else {
             "scripts/stitch.rhai"
         };
         let (a, b) = (
-            tmp(&format!("mock-{i}.jsonl")),
-            tmp(&format!("ros2-{i}.jsonl")),
-        );
-        let mock = run(&[plan, "--seed", &seed], &a, Duration::from_secs(60));
-        let wire = run(
-            &[plan, "--seed", &seed, "--robot", "ros2", "--domain-id", &d],
-            &b,
-            Duration::from_secs(120),
-        );
-        assert!(matches!(mock.code, Some(0 | 4)), "{}", mock.out);
-        assert_eq!(
-            wire.code,
-            mock.code,
-            "run {i} ({plan}, seed {seed}): {}\nsim-node:\n{}",
-            wire.out,
-            node.log()
-        );
-        let (m, w) = (untimed(&mock.journal), untimed(&wire.journal));
-        assert!(m.len() > 5, "{}", mock.journal);
-        assert_eq!(w, m, "run {i} ({plan}, seed {seed}): the journals differ");
-    }
-    let log = node.log();
-    assert!(log.contains("state_command enable"), "{log}");
-    assert!(log.contains("state_command home"), "{log}");
-    assert!(log.contains("trajectory speed ratio 0.2"), "{log}");
-}
-
-#[test]
-fn pipeline_missions_over_ros2_match_the_in_process_mock_seed_for_seed() {
-    let _one = serial();
-    // The stereo pairs go over the camera topics (rendered by the sim-node on each capture's
-    // trigger), the pipeline runs here on what arrived: same outcomes as in process.
-    let runs: u64 = std::env::var("STITCH_ROS2_PIPELINE_RUNS")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(2);
-    let d = domain(8);
-    let node = SimNode::start(&d, &[]);
-    for i in 0..runs {
-        let seed = (i + 1).to_string();
-        let plan = if i % 2 == 1 {
-            "scripts/stitch_human.rhai"
-        } else {
-            "scripts/stitch.rhai"
-        };
-        let p = ["--perception", "pipeline"];
-        let (a, b) = (
-            tmp(&format!("mock-pipeline-{i}.jsonl")),
-            tmp(&format!("ros2-pipeline-{i}.jsonl")),
+            tmp(&format!("mock-{k}-{i}.jsonl")),
+            tmp(&format!("ros2-{k}-{i}.jsonl")),
         );
         let mock = run(
-            &[&[plan, "--seed", &seed][..], &p].concat(),
+            &[&[plan, "--seed", &seed][..], extra].concat(),
             &a,
             Duration::from_secs(60),
         );
         let wire = run(
             &[
                 &[plan, "--seed", &seed, "--robot", "ros2", "--domain-id", &d][..],
-                &p,
+                extra,
             ]
             .concat(),
             &b,
@@ -244,6 +198,27 @@ fn pipeline_missions_over_ros2_match_the_in_process_mock_seed_for_seed() {
         assert!(m.len() > 5, "{}", mock.journal);
         assert_eq!(w, m, "run {i} ({plan}, seed {seed}): the journals differ");
     }
+    node
+}
+
+#[test]
+fn missions_over_ros2_match_the_in_process_mock_seed_for_seed() {
+    let _one = serial();
+    // STITCH_ROS2_RUNS=20 for the acceptance's twenty in a row.
+    let node = twins(0, "STITCH_ROS2_RUNS", 3, 3, &[]);
+    let log = node.log();
+    assert!(log.contains("state_command enable"), "{log}");
+    assert!(log.contains("state_command home"), "{log}");
+    assert!(log.contains("trajectory speed ratio 0.2"), "{log}");
+}
+
+#[test]
+fn pipeline_missions_over_ros2_match_the_in_process_mock_seed_for_seed() {
+    let _one = serial();
+    // The stereo pairs go over the camera topics (rendered by the sim-node on each capture's
+    // trigger), the pipeline runs here on what arrived: same outcomes as in process.
+    let extra = ["--perception", "pipeline"];
+    let node = twins(8, "STITCH_ROS2_PIPELINE_RUNS", 2, 2, &extra);
     let log = node.log();
     assert!(log.contains("with the stereo camera"), "{log}");
 }
