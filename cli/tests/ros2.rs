@@ -409,35 +409,32 @@ fn without_a_dvrk_the_run_says_what_is_missing() {
 
 #[test]
 fn bad_ros2_settings_are_refused_with_the_reason() {
-    let bad = tmp("bad.toml");
-    std::fs::write(&bad, "stale_after_s = -1.0\n").expect("config");
-    let ran = run(
-        &[
-            "scripts/stitch.rhai",
-            "--robot",
-            "ros2",
-            "--dvrk-config",
-            bad.to_str().expect("utf-8"),
-        ],
-        &tmp("bad.jsonl"),
-        Duration::from_secs(30),
-    );
-    assert_eq!(ran.code, Some(1), "{}", ran.out);
-    assert!(ran.out.contains("dvrk.stale_after_s"), "{}", ran.out);
-    std::fs::write(&bad, "[camera]\nleft_image = \"left\"\n").expect("config");
-    let ran = run(
-        &[
-            "scripts/stitch.rhai",
-            "--robot",
-            "ros2",
-            "--dvrk-config",
-            bad.to_str().expect("utf-8"),
-        ],
-        &tmp("bad-camera.jsonl"),
-        Duration::from_secs(30),
-    );
-    assert_eq!(ran.code, Some(1), "{}", ran.out);
-    assert!(ran.out.contains("dvrk.camera.left_image"), "{}", ran.out);
+    for (i, (text, key)) in [
+        ("stale_after_s = -1.0\n", "dvrk.stale_after_s"),
+        (
+            "[camera]\nleft_image = \"left\"\n",
+            "dvrk.camera.left_image",
+        ),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let bad = tmp(&format!("bad-{i}.toml"));
+        std::fs::write(&bad, text).expect("config");
+        let ran = run(
+            &[
+                "scripts/stitch.rhai",
+                "--robot",
+                "ros2",
+                "--dvrk-config",
+                bad.to_str().expect("utf-8"),
+            ],
+            &tmp(&format!("bad-{i}.jsonl")),
+            Duration::from_secs(30),
+        );
+        assert_eq!(ran.code, Some(1), "{}", ran.out);
+        assert!(ran.out.contains(key), "{}", ran.out);
+    }
     let ran = run(
         &[
             "scripts/stitch.rhai",
