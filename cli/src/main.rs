@@ -1,6 +1,8 @@
 //! `stitch`: check and run suture plans.
 #![allow(clippy::print_stdout)] // a command-line tool prints its results
 
+#[cfg(feature = "ros2")]
+mod console;
 mod mock;
 mod perceive;
 mod plot;
@@ -119,6 +121,12 @@ enum Command {
         /// The ROS 2 domain for --robot ros2 (0 to 232) [default: $ROS_DOMAIN_ID, else 0].
         #[arg(long)]
         domain_id: Option<String>,
+        /// --robot ros2 on a real dVRK: no simulator's side channel, so no scoring and no
+        /// simulated recovery; needs --perception pipeline (the stereo camera's topics) and
+        /// camera.camera_to_robot in --dvrk-config; the surgeon at this terminal supervises
+        /// (commands on standard input; see docs/dvrk.md).
+        #[arg(long)]
+        no_simulator: bool,
         /// Run the plan even if validation refuses it, to replay a counterexample that
         /// `stitch check --explore` found for an invalid plan. Scripted robot only: nothing
         /// moves. The validation errors are still printed.
@@ -310,6 +318,7 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
             mock_config,
             dvrk_config,
             domain_id,
+            no_simulator,
         } => {
             if outcomes.is_some() && robot != RobotKind::Scripted {
                 anyhow::bail!(
@@ -332,8 +341,10 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
             let Some(loaded) = loaded else {
                 return Ok(exit::INVALID_PLAN);
             };
-            if robot != RobotKind::Ros2 && (dvrk_config.is_some() || domain_id.is_some()) {
-                anyhow::bail!("--dvrk-config and --domain-id are for --robot ros2");
+            if robot != RobotKind::Ros2
+                && (dvrk_config.is_some() || domain_id.is_some() || no_simulator)
+            {
+                anyhow::bail!("--dvrk-config, --domain-id and --no-simulator are for --robot ros2");
             }
             let report = match robot {
                 RobotKind::Scripted => run_scripted(&loaded, seed, outcomes.as_deref())?,
@@ -347,14 +358,12 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
                         }
                     };
                     if robot == RobotKind::Ros2 {
-                        run_ros2(
-                            &loaded,
-                            &mock.scene,
-                            perception,
-                            seed,
+                        let on = Ros2Run {
                             dvrk_config,
                             domain_id,
-                        )?
+                            simulator: !no_simulator,
+                        };
+                        run_ros2(&loaded, &mock.scene, perception, seed, on)?
                     } else {
                         run_mock(&loaded, &mock.scene, perception, seed)?
                     }
@@ -421,22 +430,33 @@ fn robot_name(robot: RobotKind) -> &'static str {
     }
 }
 
+/// Where and how `--robot ros2` runs.
+struct Ros2Run {
+    dvrk_config: Option<PathBuf>,
+    domain_id: Option<String>,
+    /// Against `stitch sim-node`, with its side channel (else a real dVRK).
+    simulator: bool,
+}
+
 #[cfg(feature = "ros2")]
 fn run_ros2(
     loaded: &Loaded,
     scene: &SceneConfig,
     perception: MockPerception,
     seed: u64,
-    dvrk_config: Option<PathBuf>,
-    domain_id: Option<String>,
+    on: Ros2Run,
 ) -> anyhow::Result<Report> {
-    let config = ros2::read_dvrk_config(dvrk_config.as_deref())?;
-    let ros = match domain_id {
+    let config = ros2::read_dvrk_config(on.dvrk_config.as_deref())?;
+    let ros = match on.domain_id {
         Some(d) => stitch_dvrk::ros2::Ros2Options::domain(&d)
             .map_err(|e| anyhow::anyhow!("--domain-id {d}: {e}"))?,
         None => stitch_dvrk::ros2::Ros2Options::from_env().map_err(anyhow::Error::msg)?,
     };
-    ros2::run_ros2(loaded, scene, perception, seed, &ros, &config)
+    if on.simulator {
+        ros2::run_ros2(loaded, scene, perception, seed, &ros, &config)
+    } else {
+        ros2::run_real(loaded, scene, perception, seed, &ros, &config)
+    }
 }
 
 #[cfg(not(feature = "ros2"))]
@@ -445,8 +465,7 @@ fn run_ros2(
     _: &SceneConfig,
     _: MockPerception,
     _: u64,
-    _: Option<PathBuf>,
-    _: Option<String>,
+    _: Ros2Run,
 ) -> anyhow::Result<Report> {
     anyhow::bail!(
         "--robot ros2: this stitch was built without the `ros2` feature; rebuild with \

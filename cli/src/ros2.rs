@@ -1,6 +1,7 @@
 //! `stitch run --robot ros2` and `stitch sim-node`: missions over the dVRK's CRTK topics on
 //! ROS 2, against a real dVRK or the mock served by `stitch sim-node`.
 
+use crate::console::ConsoleSupervisor;
 use anyhow::Context;
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -65,6 +66,11 @@ pub struct SimNodeArgs {
     /// drop-command@N, camera-silent@N (no stereo images from then on). Repeatable.
     #[arg(long = "wire-fault", value_name = "KIND@N")]
     pub wire_faults: Vec<WireFault>,
+    /// Stream the stereo camera (--mock-config's) at this rate, Hz, from the start, as a
+    /// camera driver does: for `stitch run --robot ros2 --no-simulator` and image tools.
+    /// Without it the camera renders a pair per capture trigger only.
+    #[arg(long, value_name = "HZ")]
+    pub camera_hz: Option<f64>,
 }
 
 /// Serve the mock until killed.
@@ -78,6 +84,8 @@ pub fn sim_node(args: SimNodeArgs) -> anyhow::Result<u8> {
         time_scale: args.time_scale,
         rate_hz: args.rate_hz,
         faults: args.wire_faults,
+        camera: args.camera_hz.map(|_| config.camera.clone()),
+        camera_hz: args.camera_hz,
         ..SimNodeOptions::default()
     };
     let stop = AtomicBool::new(false);
@@ -253,14 +261,15 @@ pub fn run_ros2(
     let timeout = Duration::from_secs_f64(config.connect_timeout_s);
     let oracle = Oracle::connect(ros, timeout).map_err(|e| {
         anyhow::anyhow!(
-            "{e}\nThe scene's scoring, the supervisor's recovery and the noise-model estimator \
-             come from `stitch sim-node` over ROS 2, and a real dVRK has none of them, so \
-             --robot ros2 runs against the sim-node only (the arms and, with --perception \
-             pipeline, the stereo camera go over the dVRK's own topics)."
+            "{e}\nThe scene's scoring, the simulated recovery and the noise-model estimator \
+             come from `stitch sim-node`'s side channel. On a real dVRK add --no-simulator \
+             (with --perception pipeline and camera.camera_to_robot in --dvrk-config): no \
+             scoring, and you supervise at this terminal."
         )
     })?;
     let oracle = Arc::new(oracle);
     let dvrk = Arc::new(Ros2Dvrk::connect(ros, config).context("cannot connect to the dVRK")?);
+    hold_on_interrupt(&dvrk);
     let (sensing, camera) = match perception {
         MockPerception::Model(sensing) => (sensing, None),
         MockPerception::Pipeline(camera) => (SensingConfig::default(), Some(camera)),
@@ -279,29 +288,18 @@ pub fn run_ros2(
         Some(c) => pipeline_estimator(ros, config, c, scene, &oracle, clock.clone(), seed)?,
         None => Box::new(RemoteEstimator(Arc::clone(&oracle))),
     };
-    let arm = |i: usize| {
-        dvrk.arm(i)
-            .ok_or_else(|| anyhow::anyhow!("the dVRK configuration names no arm {i}"))
+    let observer = RemoteObserver {
+        oracle: Arc::clone(&oracle),
+        lost: None,
     };
-    let jaw = |i: usize| {
-        dvrk.jaw(i)
-            .ok_or_else(|| anyhow::anyhow!("the dVRK configuration names no arm {i}"))
-    };
-    let streams = Streams::new(seed);
-    let rig = Rig {
-        right: Arc::new(arm(0)?),
-        left: Arc::new(arm(1)?),
-        right_jaw: Arc::new(jaw(0)?),
-        left_jaw: Arc::new(jaw(1)?),
+    let rig = rig(
+        &dvrk,
         estimator,
-        observer: Some(Box::new(RemoteObserver {
-            oracle: Arc::clone(&oracle),
-            lost: None,
-        })),
-        needle: scene.needle,
-        layout: mock_layout(scene, &sensing),
-        rng: streams.rng(Subsystem::Primitives),
-    };
+        Some(Box::new(observer)),
+        scene,
+        &sensing,
+        seed,
+    )?;
     let mut primitives = RobotPrimitives::new(rig);
     let plan = Arc::new(loaded.plan.clone());
     let (o, d) = (Arc::clone(&oracle), Arc::clone(&dvrk));
@@ -313,6 +311,113 @@ pub fn run_ros2(
         Arc::clone(&plan),
     );
     Ok(Runner::new(plan, &mut primitives, &mut supervisor, clock, Some(seed)).run())
+}
+
+/// The primitives' robot over ROS 2: the dVRK's first two arms and jaws (right, left), the
+/// estimator and observer given, the workspace of `scene`.
+fn rig(
+    dvrk: &Arc<Ros2Dvrk>,
+    estimator: Box<dyn NeedleEstimator>,
+    observer: Option<Box<dyn Observer>>,
+    scene: &SceneConfig,
+    sensing: &SensingConfig,
+    seed: u64,
+) -> anyhow::Result<Rig> {
+    let missing = |i: usize| anyhow::anyhow!("the dVRK configuration names no arm {i}");
+    let arm = |i: usize| dvrk.arm(i).ok_or_else(|| missing(i));
+    let jaw = |i: usize| dvrk.jaw(i).ok_or_else(|| missing(i));
+    Ok(Rig {
+        right: Arc::new(arm(0)?),
+        left: Arc::new(arm(1)?),
+        right_jaw: Arc::new(jaw(0)?),
+        left_jaw: Arc::new(jaw(1)?),
+        estimator,
+        observer,
+        needle: scene.needle,
+        layout: mock_layout(scene, sensing),
+        rng: Streams::new(seed).rng(Subsystem::Primitives),
+    })
+}
+
+/// On Ctrl-C, send `hold` to every arm, give DDS a moment to deliver it, and end the process
+/// (exit 5, aborted). Holds the dVRK weakly: a run that ends normally still drops its bus.
+fn hold_on_interrupt(dvrk: &Arc<Ros2Dvrk>) {
+    let weak = Arc::downgrade(dvrk);
+    let set = ctrlc::set_handler(move || {
+        if let Some(d) = weak.upgrade() {
+            d.hold_all();
+            std::thread::sleep(stitch_dvrk::ros2::HOLD_LINGER);
+            eprintln!("interrupted: hold sent to both arms; the run ends (no journal written)");
+        }
+        std::process::exit(i32::from(crate::exit::MISSION_ABORTED));
+    });
+    if let Err(e) = set {
+        eprintln!("warning: Ctrl-C will not hold the arms: {e}");
+    }
+}
+
+/// Run `loaded` on a real dVRK over ROS 2: the arms, and the stereo pipeline on the camera's
+/// streamed pairs; no simulator, so no scoring (no observer) and no simulated recovery: the
+/// surgeon at this terminal supervises ([`ConsoleSupervisor`]).
+pub fn run_real(
+    loaded: &Loaded,
+    scene: &SceneConfig,
+    perception: MockPerception,
+    seed: u64,
+    ros: &Ros2Options,
+    config: &DvrkConfig,
+) -> anyhow::Result<Report> {
+    if !matches!(perception, MockPerception::Pipeline(_)) {
+        anyhow::bail!(
+            "--no-simulator: a real dVRK has no noise model to estimate the needle with; add \
+             --perception pipeline (the stereo pipeline on the camera's topics)"
+        );
+    }
+    let Some(hand_eye) = &config.camera.camera_to_robot else {
+        anyhow::bail!(
+            "--no-simulator: set camera.camera_to_robot in --dvrk-config (the rectified left \
+             camera's pose in the robot frame: its hand-eye calibration; docs/dvrk.md)"
+        );
+    };
+    let camera_to_robot = hand_eye.pose().map_err(anyhow::Error::msg)?;
+    let timeout = Duration::from_secs_f64(config.connect_timeout_s);
+    let dvrk = Arc::new(Ros2Dvrk::connect(ros, config).context("cannot connect to the dVRK")?);
+    hold_on_interrupt(&dvrk);
+    let clock: Arc<dyn Clock> = Arc::new(WallClock::new());
+    let camera = Ros2Camera::connect(
+        ros,
+        &config.camera,
+        camera_to_robot,
+        None,
+        clock.clone(),
+        timeout,
+    )
+    .context("cannot connect to the stereo camera")?;
+    let pipeline = NeedlePipeline::classical(camera.calibration().clone(), scene.needle)
+        .context("the stereo camera's calibration")?;
+    let estimator = Box::new(PipelineEstimator::new(camera, pipeline, seed));
+    let rig = rig(
+        &dvrk,
+        estimator,
+        None,
+        scene,
+        &SensingConfig::default(),
+        seed,
+    )?;
+    let mut primitives = RobotPrimitives::new(rig);
+    eprintln!(
+        "no simulator: nothing scores the passes or watches the thread. What the robot cannot \
+         sense (a caught thread, a missed exit point) is yours to see: type pause or abort."
+    );
+    let mut supervisor = ConsoleSupervisor::stdin();
+    Ok(Runner::new(
+        Arc::new(loaded.plan.clone()),
+        &mut primitives,
+        &mut supervisor,
+        clock,
+        Some(seed),
+    )
+    .run())
 }
 
 /// `stitch bench ros2`.

@@ -101,8 +101,13 @@ struct Ran {
     journal: String,
 }
 
-/// `stitch run`, killed (and the test failed) past `timeout`.
+/// `stitch run`, killed (and the test failed) past `timeout`; nothing on its standard input.
 fn run(args: &[&str], journal: &Path, timeout: Duration) -> Ran {
+    run_typed(args, journal, timeout, "")
+}
+
+/// [`run`], with `typed` on its standard input (then end of input).
+fn run_typed(args: &[&str], journal: &Path, timeout: Duration, typed: &str) -> Ran {
     let (out_path, err_path) = (
         journal.with_extension("stdout"),
         journal.with_extension("stderr"),
@@ -112,10 +117,17 @@ fn run(args: &[&str], journal: &Path, timeout: Duration) -> Ran {
         .args(args)
         .args(["--journal", journal.to_str().expect("utf-8")])
         .current_dir(root())
+        .stdin(Stdio::piped())
         .stdout(std::fs::File::create(&out_path).expect("stdout file"))
         .stderr(std::fs::File::create(&err_path).expect("stderr file"))
         .spawn()
         .expect("stitch run starts");
+    {
+        use std::io::Write;
+        let mut stdin = child.stdin.take().expect("stdin");
+        // A run that already ended (bad arguments) reads nothing: not an error here.
+        let _ = stdin.write_all(typed.as_bytes());
+    }
     let deadline = Instant::now() + timeout;
     let status = loop {
         if let Some(s) = child.try_wait().expect("wait") {
@@ -405,6 +417,129 @@ fn without_a_dvrk_the_run_says_what_is_missing() {
         ran.out
     );
     assert!(ran.out.contains("stitch sim-node"), "{}", ran.out);
+}
+
+/// A `--dvrk-config` with the hand-eye pose the sim-node's log gives for its camera, as a
+/// lab writes its measured one.
+fn hand_eye_config(node: &SimNode, k: u16) -> PathBuf {
+    node.wait_for("camera_to_robot = ", Duration::from_secs(5));
+    let log = node.log();
+    let at = log.find("camera_to_robot = ").expect("the hand-eye line");
+    let line = log[at..].lines().next().expect("a line");
+    let config = tmp(&format!("real-{k}.toml"));
+    std::fs::write(&config, format!("[camera]\n{line}\n")).expect("config");
+    config
+}
+
+fn real_args<'a>(d: &'a str, config: &'a Path) -> Vec<&'a str> {
+    vec![
+        "scripts/stitch.rhai",
+        "--robot",
+        "ros2",
+        "--no-simulator",
+        "--perception",
+        "pipeline",
+        "--domain-id",
+        d,
+        "--dvrk-config",
+        config.to_str().expect("utf-8"),
+    ]
+}
+
+#[test]
+fn without_the_simulator_a_mission_runs_on_streamed_images_under_the_terminal_supervisor() {
+    let _one = serial();
+    let d = domain(10);
+    // The camera streams as a driver does; the run uses no side channel at all.
+    let node = SimNode::start(&d, &["--camera-hz", "15"]);
+    let config = hand_eye_config(&node, 10);
+    let ran = run(
+        &real_args(&d, &config),
+        &tmp("real.jsonl"),
+        Duration::from_secs(120),
+    );
+    assert!(
+        matches!(ran.code, Some(0 | 4)),
+        "{}\nsim-node:\n{}",
+        ran.out,
+        node.log()
+    );
+    assert!(
+        ran.out.contains("supervisor: you, at this terminal"),
+        "{}",
+        ran.out
+    );
+    assert!(
+        ran.out.contains("no simulator: nothing scores the passes"),
+        "{}",
+        ran.out
+    );
+    assert!(
+        ran.journal
+            .contains(r#""primitive":"insert","attempt":0,"outcome":{"result":"succeeded""#),
+        "the pipeline saw the needle on streamed pairs and the insertion ran:\n{}",
+        ran.journal
+    );
+    let log = node.log();
+    assert!(log.contains("motion 1 "), "{log}");
+    assert!(!log.contains("reset to seed"), "no side channel: {log}");
+    assert!(!log.contains("recovery motion"), "no side channel: {log}");
+}
+
+#[test]
+fn without_the_simulator_the_surgeon_can_abort_from_the_terminal() {
+    let _one = serial();
+    let d = domain(11);
+    let node = SimNode::start(&d, &["--camera-hz", "15"]);
+    let config = hand_eye_config(&node, 11);
+    let ran = run_typed(
+        &real_args(&d, &config),
+        &tmp("real-abort.jsonl"),
+        Duration::from_secs(120),
+        "melt\nabort\n",
+    );
+    assert_eq!(ran.code, Some(5), "aborted: {}", ran.out);
+    assert!(
+        ran.out.contains("unknown supervisor command `melt`"),
+        "{}",
+        ran.out
+    );
+    assert!(ran.journal.contains(r#""event":"hold""#), "{}", ran.journal);
+    held_both(&node);
+}
+
+#[test]
+fn without_the_simulator_what_a_real_run_needs_is_named() {
+    let config = tmp("no-hand-eye.toml");
+    std::fs::write(&config, "connect_timeout_s = 1.0\n").expect("config");
+    let c = config.to_str().expect("utf-8");
+    for (args, expect) in [
+        (
+            vec!["--robot", "ros2", "--no-simulator", "--dvrk-config", c],
+            "add --perception pipeline",
+        ),
+        (
+            vec![
+                "--robot",
+                "ros2",
+                "--no-simulator",
+                "--perception",
+                "pipeline",
+                "--dvrk-config",
+                c,
+            ],
+            "set camera.camera_to_robot",
+        ),
+        (vec!["--no-simulator"], "are for --robot ros2"),
+    ] {
+        let ran = run(
+            &[&["scripts/stitch.rhai"][..], &args].concat(),
+            &tmp("real-refused.jsonl"),
+            Duration::from_secs(30),
+        );
+        assert_eq!(ran.code, Some(1), "{args:?}: {}", ran.out);
+        assert!(ran.out.contains(expect), "{args:?}: {}", ran.out);
+    }
 }
 
 #[test]

@@ -310,6 +310,7 @@ impl Ros2Dvrk {
             message: why,
         };
         let mut bus = Bus::new(options, "engine").map_err(setup)?;
+        bus.set_linger(crate::ros2::HOLD_LINGER);
         let mut links = Vec::new();
         for arm in &config.arms {
             links.push(link_and_listen(&mut bus, arm, config).map_err(setup)?);
@@ -370,6 +371,13 @@ impl Ros2Dvrk {
             }
         }
         Ok(Self { links, bus })
+    }
+
+    /// Send `hold` to every arm (an interrupted run; errors ignored: nothing else to do).
+    pub fn hold_all(&self) {
+        for l in &self.links {
+            let _ = l.hold();
+        }
     }
 
     /// The arm `i` of the configuration's list (0: the right needle driver).

@@ -444,6 +444,8 @@ impl Ros2Camera {
     ) -> Result<Self, RobotError> {
         settings.validate()?;
         let mut bus = Bus::new(options, "stereo_camera").map_err(camera_fault)?;
+        // It only listens: nothing to deliver when dropped.
+        bus.set_linger(Duration::ZERO);
         let heard: Arc<(Mutex<Heard>, Condvar)> = Arc::default();
         let qos = settings.qos();
         for (side, (image, info)) in [

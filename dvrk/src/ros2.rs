@@ -93,6 +93,7 @@ pub struct Bus {
     stop: Option<async_channel::Sender<()>>,
     thread: Option<std::thread::JoinHandle<()>>,
     domain_id: u16,
+    linger: Duration,
     // Kept alive as long as the node: the participant.
     _context: Context,
 }
@@ -145,8 +146,15 @@ impl Bus {
             stop: Some(stop),
             thread: Some(thread),
             domain_id: options.domain_id,
+            linger: LINGER,
             _context: context,
         })
+    }
+
+    /// How long the bus lingers when dropped ([`LINGER`] unless set): a bus that only
+    /// listens needs none; one that sends the last `hold` needs time for its repair.
+    pub fn set_linger(&mut self, linger: Duration) {
+        self.linger = linger;
     }
 
     /// The domain id it joined.
@@ -243,12 +251,17 @@ impl Bus {
 }
 
 /// How long a bus lingers when dropped, so its reliable writers can still deliver (and
-/// repeat, if lost) the last commands, a final `hold` above all.
+/// repeat, if lost) the last commands.
 pub const LINGER: Duration = Duration::from_millis(200);
+
+/// How long the arms' bus lingers: a lost final `hold` is repaired after the writer's next
+/// heartbeat (RustDDS: every 100 ms while unacknowledged) and the reader's request, so five
+/// of them, on a loaded machine.
+pub const HOLD_LINGER: Duration = Duration::from_millis(500);
 
 impl Drop for Bus {
     fn drop(&mut self) {
-        std::thread::sleep(LINGER);
+        std::thread::sleep(self.linger);
         self.node.stop_spinner();
         if let Some(stop) = self.stop.take() {
             let _ = stop.try_send(());

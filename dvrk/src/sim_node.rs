@@ -112,6 +112,10 @@ pub struct SimNodeOptions {
     pub arms: [String; 2],
     /// The first world's stereo camera (none until a client resets with one).
     pub camera: Option<CameraConfig>,
+    /// Stream the camera at this rate, Hz, as a camera driver does (none: a pair per
+    /// trigger only). Each frame advances the world's clock and draws its noise, so a run
+    /// against a streaming camera is not the in-process mock's twin.
+    pub camera_hz: Option<f64>,
     /// The camera's topics (the client's defaults).
     pub camera_topics: CameraSettings,
 }
@@ -128,6 +132,7 @@ impl Default for SimNodeOptions {
             faults: Vec::new(),
             arms: ["PSM1".into(), "PSM2".into()],
             camera: None,
+            camera_hz: None,
             camera_topics: CameraSettings::default(),
         }
     }
@@ -318,6 +323,11 @@ pub fn serve(
             options.rate_hz
         ));
     }
+    if let Some(hz) = options.camera_hz
+        && !(hz.is_finite() && (0.1..=60.0).contains(&hz))
+    {
+        return Err(format!("camera rate {hz} Hz: expected 0.1 to 60 Hz"));
+    }
     let mut world = World::new(
         options.seed,
         &options.scene,
@@ -399,6 +409,21 @@ pub fn serve(
             }
         }
     });
+    if let Some(c) = world.calibration() {
+        let h = camera::HandEye::from_pose(&c.camera_to_robot);
+        log(&format!(
+            "sim-node: stereo camera on {} and {}{}; its hand-eye, for [camera]: \
+             camera_to_robot = {{ translation_m = {:?}, rotation_xyzw = {:?} }}",
+            options.camera_topics.left_image,
+            options.camera_topics.right_image,
+            options
+                .camera_hz
+                .map(|hz| format!(" at {hz} Hz"))
+                .unwrap_or_default(),
+            h.translation_m,
+            h.rotation_xyzw
+        ));
+    }
     log(&format!(
         "sim-node: ready on ROS_DOMAIN_ID {} (ROS 2 {}), arms /{} and /{}, seed {}, time scale {}×",
         options.ros.domain_id,
@@ -408,10 +433,28 @@ pub fn serve(
         options.seed,
         options.time_scale
     ));
+    let frame_period = options
+        .camera_hz
+        .map(|hz| Duration::from_secs_f64(1.0 / hz));
+    let mut next_frame = Instant::now();
     while !stop.load(Ordering::SeqCst) {
+        // A streaming camera: a frame when one is due, between commands.
+        let mut idle = Duration::from_millis(50);
+        if let Some(period) = frame_period
+            && world.camera.is_some()
+        {
+            let now = Instant::now();
+            if now >= next_frame {
+                if let Err(e) = node.capture_pair(&world) {
+                    log(&format!("sim-node: camera: {e}"));
+                }
+                next_frame = (next_frame + period).max(now);
+            }
+            idle = idle.min(next_frame.saturating_duration_since(Instant::now()));
+        }
         let cmd = match node.pending.pop_front() {
             Some(c) => c,
-            None => match rx.recv_timeout(Duration::from_millis(50)) {
+            None => match rx.recv_timeout(idle) {
                 Ok(c) => c,
                 Err(RecvTimeoutError::Timeout) => continue,
                 Err(RecvTimeoutError::Disconnected) => break,
@@ -569,8 +612,28 @@ impl Node {
         self.publish_state(i);
     }
 
-    /// Wait `d` (wall), ending early on a `hold` of arm `i`; queue everything else.
-    fn dwell(&mut self, i: usize, d: Duration, rx: &Receiver<Cmd>, world: &mut World) {
+    /// Stop arm `i` where it is, and count it; `during` names the motion under way.
+    fn hold(&self, i: usize, world: &mut World, during: Option<u32>, log: &mut dyn FnMut(&str)) {
+        world.holds[i] += 1;
+        let _ = world.world.arm(SIDES[i]).hold();
+        let during = during.map(|n| format!(" during motion {n}"));
+        log(&format!(
+            "sim-node: hold /{}{}",
+            self.options.arms[i],
+            during.unwrap_or_default()
+        ));
+    }
+
+    /// Wait `d` (wall), ending early on a `hold` of arm `i` (a hold of the other arm is
+    /// taken at once too); queue everything else.
+    fn dwell(
+        &mut self,
+        i: usize,
+        d: Duration,
+        rx: &Receiver<Cmd>,
+        world: &mut World,
+        log: &mut dyn FnMut(&str),
+    ) {
         let end = Instant::now() + d;
         loop {
             let now = Instant::now();
@@ -579,7 +642,7 @@ impl Node {
             }
             match rx.recv_timeout(end - now) {
                 Ok(Cmd::Hold(j)) => {
-                    world.holds[j] += 1;
+                    self.hold(j, world, Some(self.motions), log);
                     if j == i {
                         return;
                     }
@@ -691,7 +754,7 @@ impl Node {
             self.error(i, &e.to_string(), log);
         } else {
             let wall = (sim_s / self.options.time_scale).clamp(0.002, 10.0);
-            self.dwell(i, Duration::from_secs_f64(wall), rx, world);
+            self.dwell(i, Duration::from_secs_f64(wall), rx, world, log);
         }
         // Idle first, then a measurement stamped after it: what the dVRK's 100 Hz stream
         // gives a client that waits for a measurement newer than the idle state.
@@ -741,11 +804,7 @@ impl Node {
                     Err(e) => self.error(i, &format!("servo_cp refused: {e}"), log),
                 }
             }
-            Cmd::Hold(i) => {
-                world.holds[i] += 1;
-                let _ = world.world.arm(SIDES[i]).hold();
-                log(&format!("sim-node: hold /{}", self.options.arms[i]));
-            }
+            Cmd::Hold(i) => self.hold(i, world, None, log),
             Cmd::State(i, command) => self.state_command(i, &command, log),
             Cmd::Ratio(i, r) => log(&format!(
                 "sim-node: /{} trajectory speed ratio {r}",
@@ -763,6 +822,23 @@ impl Node {
             }
             Cmd::Unreadable(e) => log(&format!("sim-node: ignored {e}")),
         }
+    }
+
+    /// Render a pair, keep it for a resend, publish it; its stamp.
+    fn capture_pair(&mut self, w: &World) -> Result<msg::Time, String> {
+        let Some(camera) = &w.camera else {
+            return Err("no stereo camera: reset with one first".into());
+        };
+        let pair = camera.capture_with_truth();
+        // Stamped when the pair exists, as a camera stamps at exposure.
+        let stamp = now_stamp();
+        let images = [
+            camera::image_msg(&pair.left, stamp, FRAMES[0]),
+            camera::image_msg(&pair.right, stamp, FRAMES[1]),
+        ];
+        self.last_pair = Some((stamp, images));
+        self.publish_pair()?;
+        Ok(stamp)
     }
 
     /// Publish the last pair and its camera info (nothing once the camera is silent).
@@ -843,21 +919,7 @@ impl Node {
                 ));
                 Answer::Done
             }
-            Call::Capture => {
-                let Some(camera) = &w.camera else {
-                    return Err("no stereo camera: reset with one first".into());
-                };
-                let pair = camera.capture_with_truth();
-                // Stamped when the pair exists, as a camera stamps at exposure.
-                let stamp = now_stamp();
-                let images = [
-                    camera::image_msg(&pair.left, stamp, FRAMES[0]),
-                    camera::image_msg(&pair.right, stamp, FRAMES[1]),
-                ];
-                self.last_pair = Some((stamp, images));
-                self.publish_pair()?;
-                Answer::Frame(stamp)
-            }
+            Call::Capture => Answer::Frame(self.capture_pair(w)?),
             Call::Resend { stamp } => {
                 match &self.last_pair {
                     Some((t, _)) if *t == stamp => self.publish_pair()?,

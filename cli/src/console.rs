@@ -1,0 +1,198 @@
+//! The supervising surgeon at this terminal: commands typed on standard input, one a line,
+//! and the interventions the robot asks for answered there.
+
+use std::io::BufRead;
+use std::sync::mpsc::{Receiver, TryRecvError};
+use stitch_engine::{InterventionRequest, InterventionResult, Supervisor, SupervisorCommand};
+
+/// What the surgeon types: `pause`, `resume`, `abort`, `e-stop`, `take-over`, `hand-back`
+/// at any time (read before the next step), and `done` or `failed` to end an intervention.
+/// End of input (Ctrl-D, a closed pipe) while the run waits on the surgeon aborts it.
+pub struct ConsoleSupervisor {
+    lines: Receiver<String>,
+    say: Box<dyn FnMut(&str)>,
+}
+
+impl std::fmt::Debug for ConsoleSupervisor {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ConsoleSupervisor").finish_non_exhaustive()
+    }
+}
+
+/// The commands, as the prompts list them.
+const COMMANDS: &str = "pause, resume, abort, e-stop, take-over or hand-back";
+
+impl ConsoleSupervisor {
+    /// Read standard input on a thread of its own; speak on standard error.
+    pub fn stdin() -> Self {
+        let (tx, rx) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            for line in std::io::stdin().lock().lines().map_while(Result::ok) {
+                if tx.send(line).is_err() {
+                    return;
+                }
+            }
+        });
+        let say = Box::new(|s: &str| eprintln!("{s}"));
+        let mut me = Self::new(rx, say);
+        (me.say)(&format!(
+            "supervisor: you, at this terminal. Type {COMMANDS} and Enter at any time (read \
+             before the next step); Ctrl-C holds both arms and ends the run."
+        ));
+        me
+    }
+
+    /// A supervisor reading `lines` and speaking through `say` (tests drive it so).
+    pub fn new(lines: Receiver<String>, say: Box<dyn FnMut(&str)>) -> Self {
+        Self { lines, say }
+    }
+
+    /// A typed line as a command, or `None` (said why) for an empty or unknown one.
+    fn command(&mut self, line: &str) -> Option<SupervisorCommand> {
+        let word = line.trim().to_ascii_lowercase();
+        if word.is_empty() {
+            return None;
+        }
+        match word.parse::<SupervisorCommand>() {
+            Ok(c) => {
+                (self.say)(&format!("supervisor: {c}"));
+                Some(c)
+            }
+            Err(_) if word == "done" || word == "failed" => {
+                (self.say)(&format!(
+                    "supervisor: `{word}` ends an intervention, and none is pending"
+                ));
+                None
+            }
+            Err(e) => {
+                (self.say)(&format!("supervisor: {e}"));
+                None
+            }
+        }
+    }
+}
+
+impl Supervisor for ConsoleSupervisor {
+    fn poll(&mut self, _attempts: usize) -> Option<SupervisorCommand> {
+        loop {
+            match self.lines.try_recv() {
+                Ok(line) => {
+                    if let Some(c) = self.command(&line) {
+                        return Some(c);
+                    }
+                }
+                Err(TryRecvError::Empty | TryRecvError::Disconnected) => return None,
+            }
+        }
+    }
+
+    fn wait(&mut self) -> Option<SupervisorCommand> {
+        (self.say)(&format!(
+            "supervisor: the arms hold; the run waits for you: type {COMMANDS}"
+        ));
+        loop {
+            let Ok(line) = self.lines.recv() else {
+                (self.say)("supervisor: end of input: the run aborts, arms held");
+                return None;
+            };
+            if let Some(c) = self.command(&line) {
+                return Some(c);
+            }
+        }
+    }
+
+    fn intervene(&mut self, request: &InterventionRequest) -> InterventionResult {
+        (self.say)(&format!(
+            "supervisor: the robot asks for help: throw {} step {} ({}) failed, class {}. \
+             The arms hold. Take over, ready the workspace for that step, then type `done` \
+             (or `failed` if it cannot go on).",
+            request.throw + 1,
+            request.step + 1,
+            request.primitive,
+            request.class
+        ));
+        loop {
+            let Ok(line) = self.lines.recv() else {
+                (self.say)("supervisor: end of input: the intervention failed");
+                return InterventionResult::Failed;
+            };
+            match line.trim().to_ascii_lowercase().as_str() {
+                "done" => return InterventionResult::Recovered,
+                "failed" | "abort" | "e-stop" => return InterventionResult::Failed,
+                "" => {}
+                other => (self.say)(&format!(
+                    "supervisor: `{other}`: type `done` when the workspace is ready, or \
+                     `failed`"
+                )),
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::{Arc, Mutex};
+    use stitch_engine::FailureClass;
+
+    fn console(lines: &[&str], close: bool) -> (ConsoleSupervisor, Arc<Mutex<Vec<String>>>) {
+        let (tx, rx) = std::sync::mpsc::channel();
+        for l in lines {
+            tx.send((*l).to_string()).expect("send");
+        }
+        if !close {
+            // Keep input open: leak the sender for the test's life.
+            std::mem::forget(tx);
+        }
+        let said = Arc::new(Mutex::new(Vec::new()));
+        let sink = Arc::clone(&said);
+        let say = Box::new(move |s: &str| sink.lock().expect("said").push(s.to_string()));
+        (ConsoleSupervisor::new(rx, say), said)
+    }
+
+    fn request() -> InterventionRequest {
+        InterventionRequest {
+            throw: 1,
+            step: 2,
+            primitive: "extract",
+            class: FailureClass::Extraction,
+        }
+    }
+
+    #[test]
+    fn typed_commands_arrive_at_the_next_poll_and_bad_ones_are_explained() {
+        let (mut s, said) = console(&["", "  Pause ", "melt", "done", "resume"], false);
+        assert_eq!(s.poll(0), Some(SupervisorCommand::Pause));
+        assert_eq!(s.poll(1), Some(SupervisorCommand::Resume));
+        assert_eq!(s.poll(2), None, "nothing more typed");
+        let said = said.lock().expect("said").join("\n");
+        assert!(said.contains("unknown supervisor command `melt`"), "{said}");
+        assert!(said.contains("none is pending"), "{said}");
+    }
+
+    #[test]
+    fn a_pause_waits_for_the_next_command_and_end_of_input_aborts() {
+        let (mut s, _) = console(&["nonsense", "hand-back"], true);
+        assert_eq!(s.wait(), Some(SupervisorCommand::HandBack));
+        assert_eq!(s.wait(), None, "input closed");
+    }
+
+    #[test]
+    fn an_intervention_ends_as_the_surgeon_says() {
+        let (mut s, said) = console(&["resume", "done"], false);
+        assert_eq!(s.intervene(&request()), InterventionResult::Recovered);
+        let said = said.lock().expect("said").join("\n");
+        assert!(
+            said.contains("throw 2 step 3 (extract) failed, class E"),
+            "{said}"
+        );
+        assert!(
+            said.contains("type `done` when the workspace is ready"),
+            "{said}"
+        );
+        let (mut s, _) = console(&["failed"], false);
+        assert_eq!(s.intervene(&request()), InterventionResult::Failed);
+        let (mut s, _) = console(&[], true);
+        assert_eq!(s.intervene(&request()), InterventionResult::Failed);
+    }
+}
