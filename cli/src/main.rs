@@ -431,6 +431,7 @@ fn robot_name(robot: RobotKind) -> &'static str {
 }
 
 /// Where and how `--robot ros2` runs.
+#[cfg_attr(not(feature = "ros2"), allow(dead_code))] // refused without the feature
 struct Ros2Run {
     dvrk_config: Option<PathBuf>,
     domain_id: Option<String>,

@@ -381,9 +381,8 @@ pub fn run_real(
     };
     let camera_to_robot = hand_eye.pose().map_err(anyhow::Error::msg)?;
     let timeout = Duration::from_secs_f64(config.connect_timeout_s);
-    let dvrk = Arc::new(Ros2Dvrk::connect(ros, config).context("cannot connect to the dVRK")?);
-    hold_on_interrupt(&dvrk);
     let clock: Arc<dyn Clock> = Arc::new(WallClock::new());
+    // The camera first: connecting to the arms enables and homes them, which moves them.
     let camera = Ros2Camera::connect(
         ros,
         &config.camera,
@@ -395,6 +394,8 @@ pub fn run_real(
     .context("cannot connect to the stereo camera")?;
     let pipeline = NeedlePipeline::classical(camera.calibration().clone(), scene.needle)
         .context("the stereo camera's calibration")?;
+    let dvrk = Arc::new(Ros2Dvrk::connect(ros, config).context("cannot connect to the dVRK")?);
+    hold_on_interrupt(&dvrk);
     let estimator = Box::new(PipelineEstimator::new(camera, pipeline, seed));
     let rig = rig(
         &dvrk,
