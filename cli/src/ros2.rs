@@ -63,7 +63,8 @@ pub struct SimNodeArgs {
     pub rate_hz: f64,
     /// Misbehave as a dVRK can, at the N-th motion command: arm-error@N (error, then FAULT),
     /// busy-stuck@N, stale-stamps@N, zero-stamps@N (every measurement from then on),
-    /// drop-command@N, camera-silent@N (no stereo images from then on). Repeatable.
+    /// drop-command@N, camera-silent@N (no stereo images from then on), oracle-silent@N (no
+    /// side-channel answers from then on). Repeatable.
     #[arg(long = "wire-fault", value_name = "KIND@N")]
     pub wire_faults: Vec<WireFault>,
     /// Stream the stereo camera (--mock-config's) at this rate, Hz, from the start, as a
@@ -270,6 +271,16 @@ pub fn run_ros2(
     let oracle = Arc::new(oracle);
     let dvrk = Arc::new(Ros2Dvrk::connect(ros, config).context("cannot connect to the dVRK")?);
     hold_on_interrupt(&dvrk);
+    // The sim-node streams the arms' state all the time: a call it stops answering fails
+    // once that stream is silent, not after the whole timeout. Lenient (nothing moves
+    // during a call): a second, or the stale bound if longer.
+    let (weak, bound) = (
+        Arc::downgrade(&dvrk),
+        Duration::from_secs_f64(config.stale_after_s.max(1.0)),
+    );
+    oracle.watch(Box::new(move || {
+        weak.upgrade().map_or(Ok(()), |d| d.alive(bound))
+    }));
     let (sensing, camera) = match perception {
         MockPerception::Model(sensing) => (sensing, None),
         MockPerception::Pipeline(camera) => (SensingConfig::default(), Some(camera)),

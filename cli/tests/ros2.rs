@@ -392,6 +392,50 @@ fn a_sim_node_killed_mid_move_is_caught_and_the_run_ends_holding() {
 }
 
 #[test]
+fn a_sim_node_killed_while_a_side_channel_call_waits_is_caught_within_a_second_or_so() {
+    let _one = serial();
+    let d = domain(12);
+    // The side channel stops answering after the first motion, so the run is soon stuck in
+    // a call (the observer's, as the insertion begins); then the node dies. The call must
+    // fail on the silent state stream, not wait out its 15 s timeout; the next motion then
+    // finds the dVRK silent.
+    let mut node = SimNode::start(&d, &["--wire-fault", "oracle-silent@1"]);
+    let journal = tmp("killed-in-call.jsonl");
+    let args: Vec<String> = ["scripts/stitch.rhai", "--robot", "ros2", "--domain-id", &d]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
+    let runner = std::thread::spawn({
+        let journal = journal.clone();
+        move || {
+            let args: Vec<&str> = args.iter().map(String::as_str).collect();
+            run(&args, &journal, Duration::from_secs(60))
+        }
+    });
+    node.wait_for("side channel silent from motion 1", Duration::from_secs(30));
+    std::thread::sleep(Duration::from_millis(500));
+    assert!(
+        !runner.is_finished(),
+        "the run waits on the silent side channel"
+    );
+    node.kill();
+    let killed = Instant::now();
+    let ran = runner.join().expect("the run thread");
+    let after = killed.elapsed();
+    assert_eq!(ran.code, Some(4), "{}", ran.out);
+    assert!(
+        ran.journal.contains("the dVRK went silent"),
+        "{}",
+        ran.journal
+    );
+    assert!(ran.journal.contains(r#""event":"hold""#), "{}", ran.journal);
+    assert!(
+        after < Duration::from_secs(6),
+        "ended {after:?} after the kill"
+    );
+}
+
+#[test]
 fn without_a_dvrk_the_run_says_what_is_missing() {
     let _one = serial();
     let d = domain(7);

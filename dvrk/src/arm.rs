@@ -208,6 +208,16 @@ impl ArmLink {
         }
     }
 
+    /// How long `measured_cp` has been silent, s, when longer than the stale bound: a dVRK
+    /// streams it all the time, through moves too, so silence means it is gone.
+    fn silent_s(&self, heard: &Heard) -> Option<f64> {
+        heard
+            .measured
+            .as_ref()
+            .map(|(_, at)| at.elapsed().as_secs_f64())
+            .filter(|s| *s > self.config.stale_after_s)
+    }
+
     /// The arm must be enabled and homed, with no unreported error, to take a command.
     fn ready(&self) -> Result<(), RobotError> {
         let mut heard = self.heard();
@@ -371,6 +381,26 @@ impl Ros2Dvrk {
             }
         }
         Ok(Self { links, bus })
+    }
+
+    /// Whether every arm's `measured_cp` arrived within `bound` (the dVRK streams it all the
+    /// time): `Err` names the silent arm.
+    pub fn alive(&self, bound: Duration) -> Result<(), String> {
+        for l in &self.links {
+            let silent = l.heard().measured.as_ref().map(|(_, at)| at.elapsed());
+            match silent {
+                Some(s) if s <= bound => {}
+                Some(s) => {
+                    return Err(format!(
+                        "no measured_cp from /{} for {:.2} s: the dVRK (or sim-node) is gone",
+                        l.name,
+                        s.as_secs_f64()
+                    ));
+                }
+                None => return Err(format!("no measured_cp from /{} yet", l.name)),
+            }
+        }
+        Ok(())
     }
 
     /// Send `hold` to every arm (an interrupted run; errors ignored: nothing else to do).
@@ -648,7 +678,10 @@ impl Motion {
         let rise = self.sent + secs(c.busy_rise_timeout_s);
         let rose = l.wait_until(rise, |h| {
             if h.faulted() {
-                return Some(Err(()));
+                return Some(Err(None));
+            }
+            if let Some(silent_s) = l.silent_s(h) {
+                return Some(Err(Some(silent_s)));
             }
             let newer = h.state_seq > self.state_seq;
             let busy = h.busy_seq > self.state_seq;
@@ -664,9 +697,17 @@ impl Motion {
         });
         let idle_already = match rose {
             Some(Ok(idle)) => idle,
-            Some(Err(())) => {
+            Some(Err(None)) => {
                 let e = l.new_error(&mut l.heard());
                 return Err(e.unwrap_or_else(|| l.fault(format!("{what}: failed"))));
+            }
+            Some(Err(Some(silent_s))) => {
+                let _ = l.hold();
+                return Err(l.fault(format!(
+                    "{what}: the dVRK went silent before the move began (no measured_cp for \
+                     {silent_s:.2} s, bound {} s): holding",
+                    c.stale_after_s
+                )));
             }
             None => {
                 // No busy at all: done only if already there (a move to where it is).
@@ -693,12 +734,7 @@ impl Motion {
                 if h.faulted() {
                     return Some(Err(None));
                 }
-                // A dVRK streams its measurements all through a move: silence means it is gone.
-                let silent_s = h
-                    .measured
-                    .as_ref()
-                    .map(|(_, at)| at.elapsed().as_secs_f64());
-                if let Some(silent_s) = silent_s.filter(|s| *s > c.stale_after_s) {
+                if let Some(silent_s) = l.silent_s(h) {
                     return Some(Err(Some(silent_s)));
                 }
                 h.state

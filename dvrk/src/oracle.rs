@@ -149,15 +149,27 @@ pub struct Reply {
 
 type Inbox = Arc<(Mutex<HashMap<u64, Result<Answer, String>>>, Condvar)>;
 
+/// Says whether the simulator is still there (`Err`: why not), asked while a call waits.
+pub type Probe = Box<dyn Fn() -> Result<(), String> + Send + Sync>;
+
 /// A client of the simulator's side channel.
-#[derive(Debug)]
 pub struct Oracle {
     request: Topic<StringMsg>,
     inbox: Inbox,
     client: u64,
     seq: AtomicU64,
     timeout: Duration,
+    probe: Mutex<Option<Probe>>,
     _bus: Bus,
+}
+
+impl std::fmt::Debug for Oracle {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Oracle")
+            .field("client", &self.client)
+            .field("timeout", &self.timeout)
+            .finish_non_exhaustive()
+    }
 }
 
 impl Oracle {
@@ -204,6 +216,7 @@ impl Oracle {
             client,
             seq: AtomicU64::new(0),
             timeout,
+            probe: Mutex::new(None),
             _bus: bus,
         };
         // The reply path may match a little after the request path: ping until answered.
@@ -217,6 +230,12 @@ impl Oracle {
                 Err(_) => {}
             }
         }
+    }
+
+    /// Ask `probe` every 100 ms while a call waits, and fail the call at once when it says
+    /// the simulator is gone (instead of after the whole timeout).
+    pub fn watch(&self, probe: Probe) {
+        *self.probe.lock().unwrap_or_else(PoisonError::into_inner) = Some(probe);
     }
 
     /// Ask, and wait for the answer (at most the connect timeout).
@@ -249,8 +268,13 @@ impl Oracle {
                     timeout.as_secs_f64()
                 ));
             }
+            let probe = self.probe.lock().unwrap_or_else(PoisonError::into_inner);
+            if let Some(Err(e)) = probe.as_ref().map(|p| p()) {
+                return Err(format!("the simulator did not answer {name}: {e}"));
+            }
+            drop(probe);
             m = cv
-                .wait_timeout(m, deadline - now)
+                .wait_timeout(m, (deadline - now).min(Duration::from_millis(100)))
                 .unwrap_or_else(PoisonError::into_inner)
                 .0;
         }

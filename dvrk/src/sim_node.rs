@@ -59,6 +59,8 @@ pub enum WireFaultKind {
     DropCommand,
     /// From then on, the stereo camera publishes nothing.
     CameraSilent,
+    /// From then on, the side channel answers nothing (the CRTK topics go on).
+    OracleSilent,
 }
 
 impl std::str::FromStr for WireFault {
@@ -75,10 +77,11 @@ impl std::str::FromStr for WireFault {
             "zero-stamps" => WireFaultKind::ZeroStamps,
             "drop-command" => WireFaultKind::DropCommand,
             "camera-silent" => WireFaultKind::CameraSilent,
+            "oracle-silent" => WireFaultKind::OracleSilent,
             other => {
                 return Err(format!(
                     "wire fault {other:?}: expected arm-error, busy-stuck, stale-stamps, \
-                     zero-stamps, drop-command or camera-silent"
+                     zero-stamps, drop-command, camera-silent or oracle-silent"
                 ));
             }
         };
@@ -377,6 +380,7 @@ pub fn serve(
         motions: 0,
         stuck: false,
         camera_silent: false,
+        oracle_silent: false,
         last_pair: None,
         options: options.clone(),
         pending: VecDeque::new(),
@@ -575,6 +579,8 @@ struct Node {
     stuck: bool,
     /// A `camera-silent` fault fired.
     camera_silent: bool,
+    /// An `oracle-silent` fault fired.
+    oracle_silent: bool,
     /// The last pair published, for a resend.
     last_pair: Option<(msg::Time, [Image; 2])>,
     options: SimNodeOptions,
@@ -716,6 +722,12 @@ impl Node {
                 ));
                 self.camera_silent = true;
             }
+            Some(WireFaultKind::OracleSilent) => {
+                log(&format!(
+                    "sim-node: wire fault: side channel silent from motion {n}"
+                ));
+                self.oracle_silent = true;
+            }
             Some(WireFaultKind::StaleStamps) | Some(WireFaultKind::ZeroStamps) => {
                 let mode = if fault == Some(WireFaultKind::StaleStamps) {
                     Stamps::Stale
@@ -810,6 +822,7 @@ impl Node {
                 "sim-node: /{} trajectory speed ratio {r}",
                 self.options.arms[i]
             )),
+            Cmd::Oracle(_) if self.oracle_silent => {}
             Cmd::Oracle(req) => {
                 let result = self.answer(req.call, world, log);
                 let text = serde_json::to_string(&Reply {
