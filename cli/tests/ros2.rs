@@ -360,6 +360,18 @@ fn a_silent_camera_is_a_fault_named_so_not_a_needle_out_of_sight() {
     held_both(&node);
 }
 
+/// STITCH over ROS 2 on domain `d`, on a thread of its own (the test kills the sim-node).
+fn run_stitch_in_background(d: &str, journal: &Path) -> std::thread::JoinHandle<Ran> {
+    let (d, journal) = (d.to_string(), journal.to_path_buf());
+    std::thread::spawn(move || {
+        run(
+            &["scripts/stitch.rhai", "--robot", "ros2", "--domain-id", &d],
+            &journal,
+            Duration::from_secs(60),
+        )
+    })
+}
+
 #[test]
 fn a_sim_node_killed_mid_move_is_caught_and_the_run_ends_holding() {
     let _one = serial();
@@ -367,17 +379,7 @@ fn a_sim_node_killed_mid_move_is_caught_and_the_run_ends_holding() {
     // Real time, so the third motion is still under way when the node dies.
     let mut node = SimNode::start(&d, &["--time-scale", "1"]);
     let journal = tmp("killed.jsonl");
-    let args: Vec<String> = ["scripts/stitch.rhai", "--robot", "ros2", "--domain-id", &d]
-        .iter()
-        .map(|s| s.to_string())
-        .collect();
-    let runner = std::thread::spawn({
-        let journal = journal.clone();
-        move || {
-            let args: Vec<&str> = args.iter().map(String::as_str).collect();
-            run(&args, &journal, Duration::from_secs(60))
-        }
-    });
+    let runner = run_stitch_in_background(&d, &journal);
     node.wait_for("sim-node: motion 3 ", Duration::from_secs(30));
     std::thread::sleep(Duration::from_millis(100));
     node.kill();
@@ -401,17 +403,7 @@ fn a_sim_node_killed_while_a_side_channel_call_waits_is_caught_within_a_second_o
     // finds the dVRK silent.
     let mut node = SimNode::start(&d, &["--wire-fault", "oracle-silent@1"]);
     let journal = tmp("killed-in-call.jsonl");
-    let args: Vec<String> = ["scripts/stitch.rhai", "--robot", "ros2", "--domain-id", &d]
-        .iter()
-        .map(|s| s.to_string())
-        .collect();
-    let runner = std::thread::spawn({
-        let journal = journal.clone();
-        move || {
-            let args: Vec<&str> = args.iter().map(String::as_str).collect();
-            run(&args, &journal, Duration::from_secs(60))
-        }
-    });
+    let runner = run_stitch_in_background(&d, &journal);
     node.wait_for("side channel silent from motion 1", Duration::from_secs(30));
     std::thread::sleep(Duration::from_millis(500));
     assert!(
