@@ -72,12 +72,19 @@ pub struct SimNodeArgs {
     /// Without it the camera renders a pair per capture trigger only.
     #[arg(long, value_name = "HZ")]
     pub camera_hz: Option<f64>,
+    /// Serve the arms' namespaces and the camera's topics this `stitch run --dvrk-config`
+    /// file names (the rest of it is the client's).
+    #[arg(long)]
+    pub dvrk_config: Option<PathBuf>,
 }
 
 /// Serve the mock until killed.
 pub fn sim_node(args: SimNodeArgs) -> anyhow::Result<u8> {
     let config = crate::read_mock_config(args.mock_config.as_deref())?;
+    let names = read_dvrk_config(args.dvrk_config.as_deref())?;
     let options = SimNodeOptions {
+        arms: names.arms,
+        camera_topics: names.camera,
         ros: args.ros.options()?,
         seed: args.seed,
         scene: config.scene,
@@ -87,7 +94,6 @@ pub fn sim_node(args: SimNodeArgs) -> anyhow::Result<u8> {
         faults: args.wire_faults,
         camera: args.camera_hz.map(|_| config.camera.clone()),
         camera_hz: args.camera_hz,
-        ..SimNodeOptions::default()
     };
     let stop = AtomicBool::new(false);
     stitch_dvrk::sim_node::serve(&options, &stop, &mut |line| eprintln!("{line}"))

@@ -455,15 +455,15 @@ fn without_a_dvrk_the_run_says_what_is_missing() {
     assert!(ran.out.contains("stitch sim-node"), "{}", ran.out);
 }
 
-/// A `--dvrk-config` with the hand-eye pose the sim-node's log gives for its camera, as a
-/// lab writes its measured one.
-fn hand_eye_config(node: &SimNode, k: u16) -> PathBuf {
+/// A `--dvrk-config` with `settings` (TOML lines of `[camera]`) and the hand-eye pose the
+/// sim-node's log gives for its camera, as a lab writes its measured one.
+fn hand_eye_config(node: &SimNode, k: u16, settings: &str) -> PathBuf {
     node.wait_for("camera_to_robot = ", Duration::from_secs(5));
     let log = node.log();
     let at = log.find("camera_to_robot = ").expect("the hand-eye line");
     let line = log[at..].lines().next().expect("a line");
     let config = tmp(&format!("real-{k}.toml"));
-    std::fs::write(&config, format!("[camera]\n{line}\n")).expect("config");
+    std::fs::write(&config, format!("[camera]\n{settings}{line}\n")).expect("config");
     config
 }
 
@@ -486,9 +486,30 @@ fn real_args<'a>(d: &'a str, config: &'a Path) -> Vec<&'a str> {
 fn without_the_simulator_a_mission_runs_on_streamed_images_under_the_terminal_supervisor() {
     let _one = serial();
     let d = domain(10);
-    // The camera streams as a driver does; the run uses no side channel at all.
-    let node = SimNode::start(&d, &["--camera-hz", "15"]);
-    let config = hand_eye_config(&node, 10);
+    // The camera streams as a driver does, on topics of the lab's naming; the run uses no
+    // side channel at all.
+    let topics = "left_image = \"/rig/left/image_rect_color\"\n\
+                  left_info = \"/rig/left/camera_info\"\n\
+                  right_image = \"/rig/right/image_rect_color\"\n\
+                  right_info = \"/rig/right/camera_info\"\n";
+    let names = tmp("rig-names.toml");
+    std::fs::write(&names, format!("[camera]\n{topics}")).expect("names");
+    let node = SimNode::start(
+        &d,
+        &[
+            "--camera-hz",
+            "15",
+            "--dvrk-config",
+            names.to_str().expect("utf-8"),
+        ],
+    );
+    assert!(
+        node.log()
+            .contains("stereo camera on /rig/left/image_rect_color"),
+        "{}",
+        node.log()
+    );
+    let config = hand_eye_config(&node, 10, topics);
     let ran = run(
         &real_args(&d, &config),
         &tmp("real.jsonl"),
@@ -527,7 +548,7 @@ fn without_the_simulator_the_surgeon_can_abort_from_the_terminal() {
     let _one = serial();
     let d = domain(11);
     let node = SimNode::start(&d, &["--camera-hz", "15"]);
-    let config = hand_eye_config(&node, 11);
+    let config = hand_eye_config(&node, 11, "");
     let ran = run_typed(
         &real_args(&d, &config),
         &tmp("real-abort.jsonl"),
