@@ -13,6 +13,7 @@ use stitch_dvrk::oracle::{Answer, Call, Oracle};
 use stitch_dvrk::ros2::Ros2Options;
 use stitch_dvrk::sim_node::{SimNodeOptions, WireFault};
 use stitch_engine::{Loaded, Report, Runner};
+use stitch_perception::evaluate::percentile;
 use stitch_perception::{
     NeedleEstimate, NeedleEstimator, NeedlePipeline, PerceptionError, PipelineEstimator,
 };
@@ -477,11 +478,7 @@ struct PairStats {
 impl PairStats {
     fn of(mut ms: Vec<f64>) -> Self {
         ms.sort_by(f64::total_cmp);
-        let at = |q: f64| {
-            ms.get(((ms.len() as f64 - 1.0) * q).round() as usize)
-                .copied()
-                .unwrap_or(f64::NAN)
-        };
+        let at = |q: f64| percentile(&ms, q);
         Self {
             pairs: ms.len(),
             median_ms: at(0.5),
@@ -597,10 +594,7 @@ pub fn bench(args: BenchRos2Args) -> anyhow::Result<u8> {
             .unwrap_or_else(std::sync::PoisonError::into_inner)
             .clone();
         l.sort_by(f64::total_cmp);
-        let at = |q: f64| {
-            l.get(((l.len() as f64 - 1.0) * q).round() as usize)
-                .map_or(f64::NAN, |v| v * 1e6)
-        };
+        let at = |q: f64| percentile(&l, q) * 1e6;
         rows.push(StreamStats {
             rate_hz,
             sent: n,
