@@ -167,23 +167,9 @@ impl ArmLink {
         deadline: Instant,
         mut done: impl FnMut(&Heard) -> Option<T>,
     ) -> Option<T> {
-        let mut heard = self.heard();
-        loop {
-            if let Some(v) = done(&heard) {
-                return Some(v);
-            }
-            let now = Instant::now();
-            if now >= deadline {
-                return None;
-            }
-            // Wake at least every 20 ms: staleness is judged by the clock, not by messages.
-            let wait = (deadline - now).min(Duration::from_millis(20));
-            heard = self
-                .changed
-                .wait_timeout(heard, wait)
-                .unwrap_or_else(PoisonError::into_inner)
-                .0;
-        }
+        // Wake at least every 20 ms: staleness is judged by the clock, not by messages.
+        let tick = Duration::from_millis(20);
+        crate::ros2::wait_for(&self.heard, &self.changed, deadline, tick, |h| done(h))
     }
 
     fn fault(&self, message: String) -> RobotError {

@@ -560,21 +560,8 @@ fn wait<T>(
     deadline: Instant,
     mut done: impl FnMut(&Heard) -> Option<T>,
 ) -> Option<T> {
-    let mut h = lock(heard);
-    loop {
-        if let Some(v) = done(&h) {
-            return Some(v);
-        }
-        let now = Instant::now();
-        if now >= deadline {
-            return None;
-        }
-        h = heard
-            .1
-            .wait_timeout(h, deadline - now)
-            .unwrap_or_else(PoisonError::into_inner)
-            .0;
-    }
+    let tick = Duration::from_millis(20);
+    crate::ros2::wait_for(&heard.0, &heard.1, deadline, tick, |h| done(h))
 }
 
 impl StereoCamera for Ros2Camera {

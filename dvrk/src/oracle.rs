@@ -256,27 +256,21 @@ impl Oracle {
         self.request.publish(StringMsg { data: text })?;
         let (map, cv) = &*self.inbox;
         let deadline = Instant::now() + timeout;
-        let mut m = map.lock().unwrap_or_else(PoisonError::into_inner);
-        loop {
+        let answer = crate::ros2::wait_for(map, cv, deadline, Duration::from_millis(100), |m| {
             if let Some(r) = m.remove(&seq) {
-                return r.map_err(|e| format!("the simulator refused {name}: {e}"));
-            }
-            let now = Instant::now();
-            if now >= deadline {
-                return Err(format!(
-                    "the simulator did not answer {name} within {:.1} s",
-                    timeout.as_secs_f64()
-                ));
+                return Some(r.map_err(|e| format!("the simulator refused {name}: {e}")));
             }
             let probe = self.probe.lock().unwrap_or_else(PoisonError::into_inner);
-            if let Some(Err(e)) = probe.as_ref().map(|p| p()) {
-                return Err(format!("the simulator did not answer {name}: {e}"));
+            match probe.as_ref().map(|p| p()) {
+                Some(Err(e)) => Some(Err(format!("the simulator did not answer {name}: {e}"))),
+                _ => None,
             }
-            drop(probe);
-            m = cv
-                .wait_timeout(m, (deadline - now).min(Duration::from_millis(100)))
-                .unwrap_or_else(PoisonError::into_inner)
-                .0;
-        }
+        });
+        answer.unwrap_or_else(|| {
+            Err(format!(
+                "the simulator did not answer {name} within {:.1} s",
+                timeout.as_secs_f64()
+            ))
+        })
     }
 }

@@ -85,6 +85,34 @@ pub fn stamp_age_s(stamp: &crate::msg::Time) -> f64 {
     now_stamp().as_secs_f64() - stamp.as_secs_f64()
 }
 
+/// Wait on `cv` until `done` says something about `state`, at most until `deadline`, waking
+/// at least every `tick` (for conditions judged by the clock, such as staleness, not only by
+/// messages). What the bus threads heard is waited on so, everywhere.
+pub fn wait_for<S, T>(
+    state: &std::sync::Mutex<S>,
+    cv: &std::sync::Condvar,
+    deadline: Instant,
+    tick: Duration,
+    mut done: impl FnMut(&mut S) -> Option<T>,
+) -> Option<T> {
+    let mut s = state
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
+    loop {
+        if let Some(v) = done(&mut s) {
+            return Some(v);
+        }
+        let now = Instant::now();
+        if now >= deadline {
+            return None;
+        }
+        s = cv
+            .wait_timeout(s, (deadline - now).min(tick))
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .0;
+    }
+}
+
 /// One DDS participant with one ROS 2 node, its spinner and every subscription's reader
 /// running on a background thread. Publishing is synchronous; subscriptions call a handler.
 pub struct Bus {
