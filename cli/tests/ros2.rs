@@ -236,13 +236,14 @@ fn pipeline_missions_over_ros2_match_the_in_process_mock_seed_for_seed() {
 }
 
 /// Run STITCH against a sim-node that misbehaves so; the run must fail (exit 4) with
-/// `expect` in its journal, and the journal must record the hold.
-fn faulted(k: u16, node_args: &[&str], expect: &str) -> (Ran, SimNode) {
+/// `expect` in its journal, the journal must record the hold, and the sim-node must have
+/// been told to hold both arms.
+fn faulted(k: u16, node_args: &[&str], expect: &str) {
     faulted_with(k, node_args, &[], expect)
 }
 
 /// [`faulted`], with more arguments to `stitch run`.
-fn faulted_with(k: u16, node_args: &[&str], run_args: &[&str], expect: &str) -> (Ran, SimNode) {
+fn faulted_with(k: u16, node_args: &[&str], run_args: &[&str], expect: &str) {
     let d = domain(k);
     let node = SimNode::start(&d, node_args);
     let config = tmp(&format!("dvrk-{k}.toml"));
@@ -282,7 +283,7 @@ fn faulted_with(k: u16, node_args: &[&str], run_args: &[&str], expect: &str) -> 
         ran.journal
     );
     assert!(ran.out.contains("arm fault"), "{}", ran.out);
-    (ran, node)
+    held_both(&node);
 }
 
 fn held_both(node: &SimNode) {
@@ -300,64 +301,58 @@ fn held_both(node: &SimNode) {
 #[test]
 fn an_arm_error_over_the_wire_fails_the_motion_and_holds_the_arms() {
     let _one = serial();
-    let (_, node) = faulted(
+    faulted(
         1,
         &["--wire-fault", "arm-error@5"],
         "the dVRK reported: PSM1: sim-node wire fault: joint 3 following error",
     );
-    held_both(&node);
 }
 
 #[test]
 fn a_busy_that_never_clears_times_out_and_holds_the_arms() {
     let _one = serial();
-    let (_, node) = faulted(
+    faulted(
         2,
         &["--wire-fault", "busy-stuck@5"],
         "motion did not finish within 2.000 s",
     );
-    held_both(&node);
 }
 
 #[test]
 fn stale_measurements_are_refused() {
     let _one = serial();
-    let (_, node) = faulted(3, &["--wire-fault", "stale-stamps@5"], "s old");
-    held_both(&node);
+    faulted(3, &["--wire-fault", "stale-stamps@5"], "s old");
 }
 
 #[test]
 fn zero_stamps_are_refused_as_invalid() {
     let _one = serial();
-    let (_, node) = faulted(
+    faulted(
         4,
         &["--wire-fault", "zero-stamps@5"],
         "zero stamp: the dVRK marks invalid data so",
     );
-    held_both(&node);
 }
 
 #[test]
 fn a_dropped_command_is_caught_and_the_arms_held() {
     let _one = serial();
-    let (_, node) = faulted(
+    faulted(
         5,
         &["--wire-fault", "drop-command@5"],
         "the arm never reported busy within 1 s",
     );
-    held_both(&node);
 }
 
 #[test]
 fn a_silent_camera_is_a_fault_named_so_not_a_needle_out_of_sight() {
     let _one = serial();
-    let (_, node) = faulted_with(
+    faulted_with(
         9,
         &["--wire-fault", "camera-silent@3"],
         &["--perception", "pipeline"],
         "perception: stereo camera: fault: no triggered pair within 2.0 s",
     );
-    held_both(&node);
 }
 
 /// STITCH over ROS 2 on domain `d`, on a thread of its own (the test kills the sim-node).
