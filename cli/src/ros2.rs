@@ -276,8 +276,7 @@ pub fn run_ros2(
         )
     })?;
     let oracle = Arc::new(oracle);
-    let dvrk = Arc::new(Ros2Dvrk::connect(ros, config).context("cannot connect to the dVRK")?);
-    hold_on_interrupt(&dvrk);
+    let dvrk = connect_arms(ros, config)?;
     // The sim-node streams the arms' state all the time: a call it stops answering fails
     // once that stream is silent, not after the whole timeout. Lenient (nothing moves
     // during a call): a second, or the stale bound if longer.
@@ -359,6 +358,17 @@ fn rig(
 
 /// On Ctrl-C, send `hold` to every arm, give DDS a moment to deliver it, and end the process
 /// (exit 5, aborted). Holds the dVRK weakly: a run that ends normally still drops its bus.
+/// Meet the dVRK's arms (Ctrl-C holds them from then on) and say what the console had
+/// latched from before this run and was not counted.
+fn connect_arms(ros: &Ros2Options, config: &DvrkConfig) -> anyhow::Result<Arc<Ros2Dvrk>> {
+    let dvrk = Arc::new(Ros2Dvrk::connect(ros, config).context("cannot connect to the dVRK")?);
+    hold_on_interrupt(&dvrk);
+    for e in dvrk.ignored_history() {
+        eprintln!("dVRK: not counted, from before this run (latched by the console): {e}");
+    }
+    Ok(dvrk)
+}
+
 fn hold_on_interrupt(dvrk: &Arc<Ros2Dvrk>) {
     let weak = Arc::downgrade(dvrk);
     let set = ctrlc::set_handler(move || {
@@ -412,8 +422,7 @@ pub fn run_real(
     .context("cannot connect to the stereo camera")?;
     let pipeline = NeedlePipeline::classical(camera.calibration().clone(), scene.needle)
         .context("the stereo camera's calibration")?;
-    let dvrk = Arc::new(Ros2Dvrk::connect(ros, config).context("cannot connect to the dVRK")?);
-    hold_on_interrupt(&dvrk);
+    let dvrk = connect_arms(ros, config)?;
     let estimator = Box::new(PipelineEstimator::new(camera, pipeline, seed));
     let rig = rig(
         &dvrk,

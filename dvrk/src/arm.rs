@@ -9,8 +9,11 @@
 //! stopped with `hold`.
 
 use crate::msg::{self, Empty, Float64, JointState, OperatingState, PoseStamped, StringStamped};
-use crate::ros2::{Bus, Matched, Ros2Options, Topic, latched_qos, now_stamp, stream_qos, types};
+use crate::ros2::{
+    Bus, Matched, Ros2Options, Stamped, Topic, latched_qos, now_stamp, stream_qos, types,
+};
 use serde::{Deserialize, Serialize};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError};
 use std::time::{Duration, Instant};
 use stitch_robot::{Arm, Jaw, MotionTracker, MoveHandle, Pose, RobotError};
@@ -43,6 +46,12 @@ pub struct DvrkConfig {
     /// `trajectory_j/set_ratio` sent at start: the fraction of the arm's top joint speed its
     /// trajectories use (low at a bench: 0.2).
     pub speed_ratio: f64,
+    /// A command whose effect the dVRK has not shown (a new operating state, the latched
+    /// `trajectory_j/ratio`, busy rising) within this is sent again, s.
+    pub resend_after_s: f64,
+    /// How many times in all a command is sent before its effect is given up on (1: never
+    /// resent).
+    pub max_sends: u32,
     /// The stereo camera's topics and what a capture accepts (`[camera]`).
     pub camera: crate::camera::CameraSettings,
 }
@@ -61,6 +70,8 @@ impl Default for DvrkConfig {
             rotation_tolerance_rad: 2f64.to_radians(),
             jaw_tolerance_rad: 5f64.to_radians(),
             speed_ratio: 0.2,
+            resend_after_s: 0.3,
+            max_sends: 4,
             camera: crate::camera::CameraSettings::default(),
         }
     }
@@ -82,6 +93,7 @@ impl DvrkConfig {
             ("move_timeout_s", self.move_timeout_s),
             ("settle_timeout_s", self.settle_timeout_s),
             ("stale_after_s", self.stale_after_s),
+            ("resend_after_s", self.resend_after_s),
         ] {
             if !(v.is_finite() && v > 0.0 && v <= 3600.0) {
                 return bad(name, format!("{v}; expected 0 to 3600 s"));
@@ -100,6 +112,12 @@ impl DvrkConfig {
             return bad(
                 "speed_ratio",
                 format!("{}; expected above 0, at most 1", self.speed_ratio),
+            );
+        }
+        if !(1..=100).contains(&self.max_sends) {
+            return bad(
+                "max_sends",
+                format!("{}; expected 1 to 100", self.max_sends),
             );
         }
         for a in &self.arms {
@@ -126,8 +144,16 @@ struct Heard {
     state_seq: u64,
     /// `state_seq` of the last busy one.
     busy_seq: u64,
-    /// Every `error` message, in order.
+    /// Every `error` message of this connection, in order.
     errors: Vec<String>,
+    /// `error` messages written before this connection began (the console's latched
+    /// history, delivered when we joined): not counted, but kept to be said.
+    ignored: Vec<String>,
+    /// The last `trajectory_j/ratio`, and when it arrived.
+    ratio: Option<(f64, Instant)>,
+    /// When the last latched message (operating state, error, ratio) arrived: the console's
+    /// history of each comes in a burst when we join.
+    latched_at: Option<Instant>,
     /// Errors already reported by a failed command.
     errors_reported: usize,
     /// The last message that could not be read.
@@ -146,6 +172,10 @@ impl Heard {
 struct ArmLink {
     name: String,
     config: DvrkConfig,
+    /// When this connection began, s since the Unix epoch (before any subscription).
+    started_s: f64,
+    /// Commands sent again because their effect had not shown.
+    resends: AtomicU64,
     heard: Mutex<Heard>,
     changed: Condvar,
     move_cp: Topic<PoseStamped>,
@@ -271,10 +301,99 @@ impl ArmLink {
         }
     }
 
-    fn hold(&self) -> Result<(), RobotError> {
+    fn send_hold(&self) -> Result<(), RobotError> {
         self.hold
             .publish(Empty::default())
             .map_err(|e| self.fault(e))
+    }
+
+    fn resent(&self) {
+        self.resends.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// `hold`, confirmed: an arm that reports busy must report idle within
+    /// `resend_after_s`, or the hold is sent again, up to `max_sends` times (holding twice is
+    /// holding). An idle arm shows no effect of a hold, and needs none.
+    fn hold(&self) -> Result<(), RobotError> {
+        let busy = |h: &Heard| h.state.as_ref().is_some_and(|s| s.is_busy);
+        let c = &self.config;
+        let start = Instant::now();
+        for sends in 1..=c.max_sends {
+            if sends > 1 {
+                self.resent();
+            }
+            self.send_hold()?;
+            let until = Instant::now() + secs(c.resend_after_s);
+            if self
+                .wait_until(until, |h| (!busy(h)).then_some(()))
+                .is_some()
+            {
+                return Ok(());
+            }
+        }
+        Err(self.fault(format!(
+            "hold: the arm still reports busy after {} sends over {:.2} s",
+            c.max_sends,
+            start.elapsed().as_secs_f64()
+        )))
+    }
+
+    /// Send a command with `send` until `check` sees its effect: again every
+    /// `resend_after_s` while the dVRK shows nothing, up to `max_sends` times in all; once it
+    /// has answered (or the sends are spent), wait for the effect until `timeout`.
+    fn confirmed(
+        &self,
+        what: &str,
+        timeout: Duration,
+        send: &dyn Fn() -> Result<(), RobotError>,
+        check: &mut dyn FnMut(&Heard, &Sent) -> Check,
+        describe: &dyn Fn(&Heard) -> String,
+    ) -> Result<(), RobotError> {
+        let c = &self.config;
+        let first = Sent {
+            state_seq: self.heard().state_seq,
+            at: Instant::now(),
+        };
+        let deadline = first.at + timeout;
+        let (mut sends, mut answered) = (0, false);
+        loop {
+            if !answered && sends < c.max_sends {
+                if sends > 0 {
+                    self.resent();
+                }
+                send()?;
+                sends += 1;
+            }
+            let until = if answered || sends >= c.max_sends {
+                deadline
+            } else {
+                deadline.min(Instant::now() + secs(c.resend_after_s))
+            };
+            let got = self.wait_until(until, |h| match check(h, &first) {
+                Check::Waiting => None,
+                Check::Answered if answered => None,
+                other => Some(other),
+            });
+            match got {
+                Some(Check::Done) => return Ok(()),
+                Some(Check::Failed(e)) => return Err(self.fault(format!("{what}: {e}"))),
+                Some(_) => answered = true,
+                None if Instant::now() >= deadline => {
+                    let heard = self.heard();
+                    return Err(self.fault(format!(
+                        "{what}: not done within {:.1} s, sent {sends} time(s){} ({})",
+                        timeout.as_secs_f64(),
+                        if answered {
+                            ""
+                        } else {
+                            ": the dVRK never answered"
+                        },
+                        describe(&heard)
+                    )));
+                }
+                None => {}
+            }
+        }
     }
 
     fn command_state(&self, command: &str) -> Result<(), RobotError> {
@@ -286,6 +405,28 @@ impl ArmLink {
             .map_err(|e| self.fault(e))
     }
 }
+
+/// What [`ArmLink::confirmed`] knew when it first sent a command.
+struct Sent {
+    state_seq: u64,
+    at: Instant,
+}
+
+/// What the dVRK has shown of a command's effect so far.
+enum Check {
+    /// The effect: done.
+    Done,
+    /// The dVRK refused it or faulted.
+    Failed(String),
+    /// The dVRK answered (a new state) but the effect is not complete: no more sends.
+    Answered,
+    /// Nothing yet.
+    Waiting,
+}
+
+/// Messages of a latched topic come no further apart than this in the burst of history the
+/// console delivers when we join: its end is this long without one.
+const LATCHED_QUIET: Duration = Duration::from_millis(100);
 
 /// The dVRK over ROS 2: the bus and every arm it met.
 #[derive(Debug)]
@@ -341,14 +482,25 @@ impl Ros2Dvrk {
                     l.name, config.connect_timeout_s
                 )));
             }
+            // The current state is the last of the console's latched history: wait for the
+            // burst to end before reading it.
+            let quiet = l.wait_until(deadline, |h| {
+                h.latched_at
+                    .is_none_or(|t| t.elapsed() >= LATCHED_QUIET)
+                    .then_some(())
+            });
+            if quiet.is_none() {
+                return Err(l.fault(format!(
+                    "the latched topics of /{} never fell quiet for {} ms within {} s",
+                    l.name,
+                    LATCHED_QUIET.as_millis(),
+                    config.connect_timeout_s
+                )));
+            }
         }
         for l in &links {
             bring_up(l)?;
-            l.set_ratio
-                .publish(Float64 {
-                    data: config.speed_ratio,
-                })
-                .map_err(|e| l.fault(e))?;
+            set_ratio(l)?;
             let deadline = Instant::now() + secs(config.connect_timeout_s);
             let fresh = l.wait_until(deadline, |h| {
                 h.measured
@@ -387,6 +539,30 @@ impl Ros2Dvrk {
             }
         }
         Ok(())
+    }
+
+    /// How many commands were sent again because the dVRK had not shown their effect.
+    pub fn resends(&self) -> u64 {
+        self.links
+            .iter()
+            .map(|l| l.resends.load(Ordering::Relaxed))
+            .sum()
+    }
+
+    /// The `error`s the console had latched from before this connection: delivered when we
+    /// joined, not counted (each names its arm's topic), for the run to say.
+    pub fn ignored_history(&self) -> Vec<String> {
+        self.links
+            .iter()
+            .flat_map(|l| {
+                let name = l.name.clone();
+                l.heard()
+                    .ignored
+                    .iter()
+                    .map(move |e| format!("/{name}/error: {e}"))
+                    .collect::<Vec<_>>()
+            })
+            .collect()
     }
 
     /// Send `hold` to every arm (an interrupted run; errors ignored: nothing else to do).
@@ -440,38 +616,57 @@ impl Ros2Dvrk {
     }
 }
 
-/// Enable, then home, waiting on the operating state each time.
+/// Enable, then home, each confirmed by the operating state: resent while the dVRK answers
+/// nothing (a first command can be lost: see [`ArmLink::confirmed`]), then waited on.
 fn bring_up(l: &ArmLink) -> Result<(), RobotError> {
-    let timeout = l.config.state_timeout_s;
+    let timeout = secs(l.config.state_timeout_s);
     let step = |command: &str, reached: &dyn Fn(&OperatingState) -> bool| {
         let already = l.heard().state.as_ref().is_some_and(reached);
         if already {
             return Ok(());
         }
-        l.command_state(command)?;
-        let deadline = Instant::now() + secs(timeout);
-        let got = l.wait_until(deadline, |h| {
-            if let Some(e) = h.errors.get(h.errors_reported..).filter(|e| !e.is_empty()) {
-                return Some(Err(e.join("; ")));
-            }
-            h.state
-                .as_ref()
-                .filter(|s| reached(s) && !s.is_busy)
-                .map(|_| Ok(()))
-        });
-        match got {
-            Some(Ok(())) => Ok(()),
-            Some(Err(e)) => Err(l.fault(format!("{command}: the dVRK reported: {e}"))),
-            None => {
-                let state = l.heard().state.clone();
-                Err(l.fault(format!(
-                    "{command}: not done within {timeout} s (operating state {state:?})"
-                )))
-            }
-        }
+        l.confirmed(
+            command,
+            timeout,
+            &|| l.command_state(command),
+            &mut |h, sent| {
+                if let Some(e) = h.errors.get(h.errors_reported..).filter(|e| !e.is_empty()) {
+                    return Check::Failed(format!("the dVRK reported: {}", e.join("; ")));
+                }
+                match &h.state {
+                    Some(s) if reached(s) && !s.is_busy => Check::Done,
+                    _ if h.state_seq > sent.state_seq => Check::Answered,
+                    _ => Check::Waiting,
+                }
+            },
+            &|h| format!("operating state {:?}", h.state),
+        )
     };
     step("enable", &|s| s.state == "ENABLED")?;
     step("home", &|s| s.state == "ENABLED" && s.is_homed)
+}
+
+/// `trajectory_j/set_ratio`, confirmed by the dVRK's latched `trajectory_j/ratio` saying the
+/// same after it was sent: a mission at the dVRK's own trajectory speed is refused.
+fn set_ratio(l: &ArmLink) -> Result<(), RobotError> {
+    let want = l.config.speed_ratio;
+    l.confirmed(
+        "trajectory_j/set_ratio",
+        secs(l.config.connect_timeout_s),
+        &|| {
+            l.set_ratio
+                .publish(Float64 { data: want })
+                .map_err(|e| l.fault(e))
+        },
+        &mut |h, sent| match h.ratio {
+            Some((r, at)) if at > sent.at && (r - want).abs() <= 1e-9 => Check::Done,
+            _ => Check::Waiting,
+        },
+        &|h| match h.ratio {
+            Some((r, _)) => format!("trajectory_j/ratio says {r}, not {want}"),
+            None => "no trajectory_j/ratio heard: the dVRK 2.x console latches it".into(),
+        },
+    )
 }
 
 fn link(bus: &mut Bus, arm: &str, config: &DvrkConfig) -> Result<ArmLink, String> {
@@ -479,6 +674,8 @@ fn link(bus: &mut Bus, arm: &str, config: &DvrkConfig) -> Result<ArmLink, String
     let link = ArmLink {
         name: arm.to_string(),
         config: config.clone(),
+        started_s: now_stamp().as_secs_f64(),
+        resends: AtomicU64::new(0),
         heard: Mutex::new(Heard::default()),
         changed: Condvar::new(),
         move_cp: bus.publisher(&t("move_cp"), types::POSE_STAMPED, &stream_qos())?,
@@ -538,6 +735,7 @@ fn listen(bus: &mut Bus, link: &Arc<ArmLink>) -> Result<(), String> {
         types::OPERATING_STATE,
         &latched_qos(),
         on(link, |h, m: OperatingState| {
+            h.latched_at = Some(Instant::now());
             h.state_seq += 1;
             if m.is_busy {
                 h.busy_seq = h.state_seq;
@@ -545,11 +743,37 @@ fn listen(bus: &mut Bus, link: &Arc<ArmLink>) -> Result<(), String> {
             h.state = Some(m);
         }),
     )?;
-    bus.subscribe(
+    // Only errors of this connection count. The console latches `error` (transient local,
+    // depth 100) and RustDDS hands even a volatile reader the writer's history, so an error
+    // is judged by when its writer wrote it (the DDS source timestamp): before this
+    // connection began (less the clock tolerance the stale bound already grants the dVRK's
+    // stamps) it is history. One with no source timestamp counts: better a spurious failure
+    // than a missed fault.
+    let (started_s, tolerance_s) = (link.started_s, link.config.stale_after_s);
+    bus.subscribe_stamped(
         &t("error"),
         types::STRING,
         &stream_qos(),
-        on(link, |h, m: msg::StringMsg| h.errors.push(m.data)),
+        on(link, move |h, m: Stamped<msg::StringMsg>| {
+            h.latched_at = Some(Instant::now());
+            match m.source_s {
+                Some(at) if at < started_s - tolerance_s => h.ignored.push(format!(
+                    "{} (written {:.1} s before this connection)",
+                    m.message.data,
+                    started_s - at
+                )),
+                _ => h.errors.push(m.message.data),
+            }
+        }),
+    )?;
+    bus.subscribe(
+        &t("trajectory_j/ratio"),
+        types::FLOAT64,
+        &latched_qos(),
+        on(link, |h, m: Float64| {
+            h.latched_at = Some(Instant::now());
+            h.ratio = Some((m.data, Instant::now()));
+        }),
     )?;
     Ok(())
 }
@@ -590,6 +814,24 @@ impl Motion {
             sent: Instant::now(),
             done: Mutex::new(None),
         }
+    }
+
+    /// Send the motion's command (again, when busy has not risen: the same goal).
+    fn send(&self) -> Result<(), RobotError> {
+        let l = &self.link;
+        match self.goal {
+            Goal::Pose(goal) => l
+                .move_cp
+                .publish(crate::pose_to_msg(&goal, now_stamp(), "")),
+            Goal::Jaw { angle_rad, .. } => l.jaw_move_jp.publish(JointState {
+                header: ArmLink::stamp(),
+                name: vec!["jaw".into()],
+                position: vec![angle_rad],
+                velocity: vec![],
+                effort: vec![],
+            }),
+        }
+        .map_err(|e| l.fault(e))
     }
 
     /// Whether a measurement stamped at or after `idle_s` (the idle state's stamp) is at the
@@ -651,18 +893,12 @@ impl Motion {
         }
     }
 
-    /// Busy up, then down, within the timeouts; then the goal within tolerance.
-    fn run(&self, timeout: Duration) -> Result<(), RobotError> {
+    /// Wait until `until` for busy to rise, or a newer idle state (`Ok(Some(its stamp))`),
+    /// or an error (`Err(None)`), or silence (`Err(Some(silent s))`).
+    #[allow(clippy::type_complexity)]
+    fn rose(&self, until: Instant) -> Option<Result<Option<f64>, Option<f64>>> {
         let l = &self.link;
-        let c = &l.config;
-        let what = match self.goal {
-            Goal::Pose(_) => "move_cp",
-            Goal::Jaw { .. } => "jaw/move_jp",
-        };
-        // 1. Busy rises (or a newer idle state already reports the move done), unless an
-        //    error comes first.
-        let rise = self.sent + secs(c.busy_rise_timeout_s);
-        let rose = l.wait_until(rise, |h| {
+        l.wait_until(until, |h| {
             if h.faulted() {
                 return Some(Err(None));
             }
@@ -680,7 +916,38 @@ impl Motion {
                 (true, None) => Some(Ok(None)),
                 _ => None,
             }
-        });
+        })
+    }
+
+    /// Busy up, then down, within the timeouts; then the goal within tolerance.
+    fn run(&self, timeout: Duration) -> Result<(), RobotError> {
+        let l = &self.link;
+        let c = &l.config;
+        let what = match self.goal {
+            Goal::Pose(_) => "move_cp",
+            Goal::Jaw { .. } => "jaw/move_jp",
+        };
+        // 1. Busy rises (or a newer idle state already reports the move done), unless an
+        //    error comes first; while neither shows, the command is sent again every
+        //    `resend_after_s`, up to `max_sends` times, within the rise timeout.
+        let rise = self.sent + secs(c.busy_rise_timeout_s);
+        let mut sends = 1;
+        let rose = loop {
+            let until = if sends < c.max_sends {
+                rise.min(Instant::now() + secs(c.resend_after_s))
+            } else {
+                rise
+            };
+            let got = self.rose(until);
+            if got.is_some() || Instant::now() >= rise {
+                break got;
+            }
+            if sends < c.max_sends {
+                l.resent();
+                self.send()?;
+                sends += 1;
+            }
+        };
         let idle_already = match rose {
             Some(Ok(idle)) => idle,
             Some(Err(None)) => {
@@ -705,8 +972,8 @@ impl Motion {
                 drop(heard);
                 let _ = l.hold();
                 return Err(l.fault(format!(
-                    "{what}: the arm never reported busy within {} s and is not at the goal \
-                     ({miss}): the command was lost or refused; holding",
+                    "{what}: the arm never reported busy within {} s ({sends} sends) and is not \
+                     at the goal ({miss}): the command was lost or refused; holding",
                     c.busy_rise_timeout_s
                 )));
             }
@@ -831,10 +1098,7 @@ impl Arm for Ros2Arm {
         stitch_robot::finite_pose(&self.link.name, goal)?;
         self.link.ready()?;
         let motion = Motion::start(&self.link, Goal::Pose(*goal));
-        self.link
-            .move_cp
-            .publish(crate::pose_to_msg(goal, now_stamp(), ""))
-            .map_err(|e| self.link.fault(e))?;
+        motion.send()?;
         Ok(MoveHandle::new(Arc::new(motion)))
     }
 
@@ -885,16 +1149,7 @@ impl Jaw for Ros2Jaw {
                 opening: angle_rad > before,
             },
         );
-        self.link
-            .jaw_move_jp
-            .publish(JointState {
-                header: ArmLink::stamp(),
-                name: vec!["jaw".into()],
-                position: vec![angle_rad],
-                velocity: vec![],
-                effort: vec![],
-            })
-            .map_err(|e| self.link.fault(e))?;
+        motion.send()?;
         Ok(MoveHandle::new(Arc::new(motion)))
     }
 }

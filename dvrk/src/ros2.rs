@@ -232,6 +232,24 @@ impl Bus {
         M: DeserializeOwned + Send + Sync + 'static,
         F: FnMut(Result<M, String>) + Send + 'static,
     {
+        self.subscribe_stamped(full, ty, qos, move |r: Result<Stamped<M>, String>| {
+            handler(r.map(|s| s.message))
+        })
+    }
+
+    /// [`Bus::subscribe`], with each message's DDS source timestamp (when its writer sent
+    /// it, by the writer's clock).
+    pub fn subscribe_stamped<M, F>(
+        &mut self,
+        full: &str,
+        ty: (&str, &str),
+        qos: &QosProfile,
+        mut handler: F,
+    ) -> Result<(), String>
+    where
+        M: DeserializeOwned + Send + Sync + 'static,
+        F: FnMut(Result<Stamped<M>, String>) + Send + 'static,
+    {
         use futures::StreamExt;
         let topic = self.topic(full, ty, qos)?;
         let subscription = self
@@ -245,8 +263,11 @@ impl Bus {
                 futures::pin_mut!(stream);
                 while let Some(r) = stream.next().await {
                     handler(
-                        r.map(|(m, _)| m)
-                            .map_err(|e| format!("{name}: unreadable message: {e:?}")),
+                        r.map(|(message, info)| Stamped {
+                            message,
+                            source_s: info.source_timestamp().map(|t| t.to_nanos() as f64 * 1e-9),
+                        })
+                        .map_err(|e| format!("{name}: unreadable message: {e:?}")),
                     );
                 }
             })
@@ -276,6 +297,16 @@ impl Bus {
             std::thread::sleep(Duration::from_millis(10));
         }
     }
+}
+
+/// A message as it arrived, with its DDS source timestamp.
+#[derive(Debug)]
+pub struct Stamped<M> {
+    /// The message.
+    pub message: M,
+    /// When its writer wrote it, s since the Unix epoch by the writer's clock (RTPS
+    /// `INFO_TS`); `None` when the writer sent none.
+    pub source_s: Option<f64>,
 }
 
 /// How long a bus lingers when dropped, so its reliable writers can still deliver (and

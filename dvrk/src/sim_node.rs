@@ -55,8 +55,11 @@ pub enum WireFaultKind {
     StaleStamps,
     /// From then on, stamp measurements zero (CRTK's "invalid").
     ZeroStamps,
-    /// Ignore the command, as if it were lost.
+    /// Ignore the command, as if it were lost (a resend gets through).
     DropCommand,
+    /// From then on, ignore every motion command, resends too (a dVRK that stopped
+    /// listening).
+    Deaf,
     /// From then on, the stereo camera publishes nothing.
     CameraSilent,
     /// From then on, the side channel answers nothing (the CRTK topics go on).
@@ -76,12 +79,13 @@ impl std::str::FromStr for WireFault {
             "stale-stamps" => WireFaultKind::StaleStamps,
             "zero-stamps" => WireFaultKind::ZeroStamps,
             "drop-command" => WireFaultKind::DropCommand,
+            "deaf" => WireFaultKind::Deaf,
             "camera-silent" => WireFaultKind::CameraSilent,
             "oracle-silent" => WireFaultKind::OracleSilent,
             other => {
                 return Err(format!(
                     "wire fault {other:?}: expected arm-error, busy-stuck, stale-stamps, \
-                     zero-stamps, drop-command, camera-silent or oracle-silent"
+                     zero-stamps, drop-command, deaf, camera-silent or oracle-silent"
                 ));
             }
         };
@@ -176,6 +180,8 @@ struct ArmOut {
     jaw: Topic<JointState>,
     state: Topic<OperatingState>,
     error: Topic<StringMsg>,
+    /// `trajectory_j/ratio`, latched as the console latches it.
+    ratio: Topic<Float64>,
 }
 
 struct CameraOut {
@@ -379,6 +385,7 @@ pub fn serve(
         ],
         motions: 0,
         stuck: false,
+        deaf: false,
         camera_silent: false,
         oracle_silent: false,
         last_pair: None,
@@ -387,6 +394,7 @@ pub fn serve(
     };
     for i in 0..2 {
         node.publish_state(i);
+        let _ = node.out.arms[i].ratio.publish(Float64 { data: 1.0 });
     }
     // The state stream, at its rate, on its own thread.
     let publishing = Arc::new(AtomicBool::new(true));
@@ -569,6 +577,7 @@ fn arm_topics(bus: &mut Bus, name: &str, i: usize, tx: &Sender<Cmd>) -> Result<A
             &latched_qos(),
         )?,
         error: bus.publisher(&t("error"), types::STRING, &q)?,
+        ratio: bus.publisher(&t("trajectory_j/ratio"), types::FLOAT64, &latched_qos())?,
     })
 }
 
@@ -577,6 +586,8 @@ struct Node {
     states: Vec<ArmState>,
     motions: u32,
     stuck: bool,
+    /// A `deaf` fault fired: motion commands are ignored.
+    deaf: bool,
     /// A `camera-silent` fault fired.
     camera_silent: bool,
     /// An `oracle-silent` fault fired.
@@ -700,6 +711,12 @@ impl Node {
                 log(&format!("sim-node: wire fault: dropped motion {n}"));
                 return;
             }
+            Some(WireFaultKind::Deaf) => {
+                log(&format!(
+                    "sim-node: wire fault: motion commands ignored from motion {n}"
+                ));
+                self.deaf = true;
+            }
             Some(WireFaultKind::ArmError) => {
                 self.error(
                     i,
@@ -744,6 +761,10 @@ impl Node {
                     .stamps = mode;
             }
             None => {}
+        }
+        if self.deaf {
+            log(&format!("sim-node: deaf: ignored motion {n}"));
+            return;
         }
         let st = &self.states[i];
         if st.state != "ENABLED" || !st.homed || self.stuck {
@@ -818,10 +839,13 @@ impl Node {
             }
             Cmd::Hold(i) => self.hold(i, world, None, log),
             Cmd::State(i, command) => self.state_command(i, &command, log),
-            Cmd::Ratio(i, r) => log(&format!(
-                "sim-node: /{} trajectory speed ratio {r}",
-                self.options.arms[i]
-            )),
+            Cmd::Ratio(i, r) => {
+                log(&format!(
+                    "sim-node: /{} trajectory speed ratio {r}",
+                    self.options.arms[i]
+                ));
+                let _ = self.out.arms[i].ratio.publish(Float64 { data: r });
+            }
             Cmd::Oracle(_) if self.oracle_silent => {}
             Cmd::Oracle(req) => {
                 let result = self.answer(req.call, world, log);

@@ -1,0 +1,242 @@
+//! Against a DDS that is not ours: a dVRK 2.x console stand-in on Cyclone DDS
+//! (`dvrk/standin/dvrk_standin.py`, its Python environment made by `dvrk/standin/setup.sh`)
+//! with the console's QoS and arm state machine. Connects that must not lose their first
+//! command, an old latched error that must not fail a new run, an error during the run that
+//! must, and a whole `--no-simulator` mission.
+#![cfg(feature = "ros2")]
+
+use std::io::{BufRead, BufReader, Write};
+use std::path::{Path, PathBuf};
+use std::process::{Child, ChildStdin, Command, Stdio};
+use std::sync::Mutex;
+use std::sync::mpsc::{Receiver, channel};
+use std::time::{Duration, Instant};
+use stitch_dvrk::arm::{DvrkConfig, Ros2Dvrk};
+use stitch_dvrk::ros2::Ros2Options;
+use stitch_robot::{Arm, Pose};
+
+fn root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+/// A domain of this test's own, above the ranges the other ROS 2 tests use.
+fn domain(k: u16) -> u16 {
+    216 + k
+}
+
+/// One test at a time: each runs its own DDS participants on two cores, and the timing bounds
+/// are a real dVRK's.
+static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
+
+fn serial() -> std::sync::MutexGuard<'static, ()> {
+    ONE_AT_A_TIME
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+/// The stand-in's Python (a venv with Cyclone DDS from PyPI, made once by setup.sh).
+fn python() -> PathBuf {
+    let out = Command::new("bash")
+        .arg(root().join("dvrk/standin/setup.sh"))
+        .stderr(Stdio::inherit())
+        .output()
+        .expect("bash runs dvrk/standin/setup.sh");
+    assert!(
+        out.status.success(),
+        "dvrk/standin/setup.sh failed: the Cyclone DDS stand-in needs python3 with venv and \
+         PyPI reachable (see docs/dvrk.md)"
+    );
+    PathBuf::from(
+        String::from_utf8_lossy(&out.stdout)
+            .trim()
+            .lines()
+            .last()
+            .expect("a path"),
+    )
+}
+
+/// A running stand-in, killed when dropped; driven by lines on its standard input.
+struct StandIn {
+    child: Child,
+    stdin: ChildStdin,
+    lines: Receiver<String>,
+}
+
+impl StandIn {
+    fn start(domain: u16, args: &[&str]) -> Self {
+        let mut child = Command::new(python())
+            .arg(root().join("dvrk/standin/dvrk_standin.py"))
+            .args(["--domain-id", &domain.to_string()])
+            .args(args)
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .expect("the stand-in starts");
+        let stdin = child.stdin.take().expect("stdin");
+        let stdout = child.stdout.take().expect("stdout");
+        let (tx, lines) = channel();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+                if tx.send(line).is_err() {
+                    break;
+                }
+            }
+        });
+        let mut s = Self {
+            child,
+            stdin,
+            lines,
+        };
+        assert_eq!(s.line(Duration::from_secs(60)), "ready");
+        s
+    }
+
+    fn line(&mut self, timeout: Duration) -> String {
+        self.lines
+            .recv_timeout(timeout)
+            .expect("the stand-in answers within its timeout")
+    }
+
+    fn ask(&mut self, command: &str) -> String {
+        writeln!(self.stdin, "{command}").expect("the stand-in reads");
+        self.stdin.flush().expect("flush");
+        self.line(Duration::from_secs(10))
+    }
+
+    fn status(&mut self) -> serde_json::Value {
+        serde_json::from_str(&self.ask("status")).expect("status is JSON")
+    }
+}
+
+impl Drop for StandIn {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn percentile(sorted: &[f64], p: f64) -> f64 {
+    let i = ((sorted.len() as f64 - 1.0) * p).round() as usize;
+    sorted[i.min(sorted.len() - 1)]
+}
+
+/// Connect `n` times (a fresh DDS participant each time, as a new `stitch run` is), half of
+/// them to a freshly started console (first command `enable`) and half to one left enabled
+/// and homed by a previous run (first command `trajectory_j/set_ratio`): every connect
+/// succeeds and leaves both arms enabled, homed and at the configured speed ratio.
+#[test]
+fn connects_lose_no_first_command() {
+    let _one = serial();
+    let n: usize = std::env::var("STITCH_STANDIN_CONNECTS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(30);
+    let d = domain(0);
+    let mut standin = StandIn::start(d, &[]);
+    let config = DvrkConfig::default();
+    let ros = Ros2Options { domain_id: d };
+    let mut times = Vec::new();
+    let mut resent = 0;
+    for i in 0..n {
+        let fresh = i % 2 == 0;
+        assert_eq!(
+            standin.ask(if fresh {
+                "reset disabled"
+            } else {
+                "reset homed"
+            }),
+            "ok"
+        );
+        let t = Instant::now();
+        let dvrk = match Ros2Dvrk::connect(&ros, &config) {
+            Ok(d) => d,
+            Err(e) => panic!(
+                "connect {i} (fresh console: {fresh}): {e}\nstand-in: {}",
+                standin.status()
+            ),
+        };
+        times.push(t.elapsed().as_secs_f64());
+        resent += usize::from(dvrk.resends() > 0);
+        let status = standin.status();
+        for arm in ["PSM1", "PSM2"] {
+            let a = &status[arm];
+            assert_eq!(a["state"], "ENABLED", "connect {i}, {arm}: {a}");
+            assert_eq!(a["homed"], true, "connect {i}, {arm}: {a}");
+            assert_eq!(
+                a["ratio"].as_f64(),
+                Some(config.speed_ratio),
+                "connect {i}, {arm}: set_ratio lost: {a}"
+            );
+        }
+        drop(dvrk);
+    }
+    times.sort_by(f64::total_cmp);
+    eprintln!(
+        "{n} connects against the Cyclone DDS stand-in: 0 lost first commands, {resent} \
+         needed a resend; time to connect median {:.3} s, p99 {:.3} s, max {:.3} s",
+        percentile(&times, 0.5),
+        percentile(&times, 0.99),
+        times[times.len() - 1]
+    );
+}
+
+/// A small move of arm `i` from where it is.
+fn nudge(dvrk: &Ros2Dvrk, i: usize) -> Result<(), stitch_robot::RobotError> {
+    let arm = dvrk.arm(i).expect("arm");
+    let here = arm.measured_cp()?;
+    let goal = Pose::from_parts(
+        (here.translation.vector + stitch_robot::nalgebra::Vector3::new(0.0, 0.0, 0.005)).into(),
+        here.rotation,
+    );
+    arm.move_cp(&goal)?.wait(Duration::from_secs(10))
+}
+
+#[test]
+fn an_old_latched_error_does_not_fail_a_new_run() {
+    let _one = serial();
+    let d = domain(1);
+    let mut standin = StandIn::start(d, &[]);
+    // A previous run: PSM2 faulted; the console latched the error (transient local, depth
+    // 100). An operator recovered the arm (enabled, homed, idle); nothing new was published.
+    assert_eq!(
+        standin.ask("error PSM2 joint 3 following error (an earlier run)"),
+        "ok"
+    );
+    assert_eq!(standin.ask("reset homed"), "ok");
+    std::thread::sleep(Duration::from_millis(300));
+    let dvrk = Ros2Dvrk::connect(&Ros2Options { domain_id: d }, &DvrkConfig::default())
+        .expect("an error from before this run does not fail the connect");
+    let ignored = dvrk.ignored_history();
+    assert!(
+        ignored.iter().any(|e| e.contains("an earlier run")),
+        "the old error is said to be ignored, not silently dropped: {ignored:?}"
+    );
+    nudge(&dvrk, 1).expect("and does not fail PSM2's first motion");
+    nudge(&dvrk, 0).expect("nor PSM1's");
+}
+
+#[test]
+fn an_error_during_the_run_fails_it() {
+    let _one = serial();
+    let d = domain(2);
+    let mut standin = StandIn::start(d, &[]);
+    let dvrk =
+        Ros2Dvrk::connect(&Ros2Options { domain_id: d }, &DvrkConfig::default()).expect("connect");
+    nudge(&dvrk, 1).expect("a motion before the error");
+    assert_eq!(standin.ask("error PSM2 joint 3 following error"), "ok");
+    std::thread::sleep(Duration::from_millis(200));
+    let moves = |s: &mut StandIn| s.status()["PSM2"]["counts"]["move_cp"].as_u64();
+    let before = moves(&mut standin);
+    let e = nudge(&dvrk, 1).expect_err("the error fails PSM2's next motion");
+    assert!(
+        e.to_string().contains("joint 3 following error"),
+        "the error names what the dVRK said: {e}"
+    );
+    assert_eq!(
+        moves(&mut standin),
+        before,
+        "nothing is commanded to a faulted arm"
+    );
+    nudge(&dvrk, 0).expect("PSM1 had no error");
+}
