@@ -4,150 +4,16 @@
 //! and the journal records both.
 #![cfg(feature = "ros2")]
 
-use std::io::{BufRead, BufReader};
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
-use std::sync::{Arc, Mutex};
+mod support;
+
+use std::path::Path;
 use std::time::{Duration, Instant};
-
-fn root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
-}
-
-fn tmp(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("stitch-ros2-test-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    dir.join(name)
-}
+use support::{Ran, SimNode, hand_eye_config, run, run_typed, serial, tmp};
 
 /// A domain of this test's own: away from 0, from other test processes, and from the other
 /// tests in this one (`k` is the test's number).
 fn domain(k: u16) -> String {
     (10 + (std::process::id() % 20) as u16 * 10 + k).to_string()
-}
-
-/// One test at a time: each runs two processes whose timing bounds (a 0.25 s stale bound, a
-/// 1 s busy rise) are a real dVRK's, not a loaded 2-core machine's with nine at once.
-static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
-
-fn serial() -> std::sync::MutexGuard<'static, ()> {
-    ONE_AT_A_TIME
-        .lock()
-        .unwrap_or_else(std::sync::PoisonError::into_inner)
-}
-
-/// A running `stitch sim-node`, killed when dropped; its log lines collected.
-struct SimNode {
-    child: Child,
-    log: Arc<Mutex<String>>,
-}
-
-impl SimNode {
-    fn start(domain: &str, args: &[&str]) -> Self {
-        let mut child = Command::new(env!("CARGO_BIN_EXE_stitch"))
-            .args(["sim-node", "--domain-id", domain])
-            .args(args)
-            .current_dir(root())
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped())
-            .spawn()
-            .expect("stitch sim-node starts");
-        let log = Arc::new(Mutex::new(String::new()));
-        let (sink, stderr) = (Arc::clone(&log), child.stderr.take().expect("stderr"));
-        std::thread::spawn(move || {
-            for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-                let mut l = sink.lock().expect("log");
-                l.push_str(&line);
-                l.push('\n');
-            }
-        });
-        let node = Self { child, log };
-        node.wait_for("sim-node: ready", Duration::from_secs(30));
-        node
-    }
-
-    fn log(&self) -> String {
-        self.log.lock().expect("log").clone()
-    }
-
-    fn wait_for(&self, text: &str, timeout: Duration) {
-        let deadline = Instant::now() + timeout;
-        while !self.log().contains(text) {
-            assert!(
-                Instant::now() < deadline,
-                "sim-node did not say {text:?} within {timeout:?}:\n{}",
-                self.log()
-            );
-            std::thread::sleep(Duration::from_millis(10));
-        }
-    }
-
-    fn kill(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-impl Drop for SimNode {
-    fn drop(&mut self) {
-        self.kill();
-    }
-}
-
-/// What a `stitch run` printed and wrote.
-struct Ran {
-    code: Option<i32>,
-    out: String,
-    journal: String,
-}
-
-/// `stitch run`, killed (and the test failed) past `timeout`; nothing on its standard input.
-fn run(args: &[&str], journal: &Path, timeout: Duration) -> Ran {
-    run_typed(args, journal, timeout, "")
-}
-
-/// [`run`], with `typed` on its standard input (then end of input).
-fn run_typed(args: &[&str], journal: &Path, timeout: Duration, typed: &str) -> Ran {
-    let (out_path, err_path) = (
-        journal.with_extension("stdout"),
-        journal.with_extension("stderr"),
-    );
-    let mut child = Command::new(env!("CARGO_BIN_EXE_stitch"))
-        .arg("run")
-        .args(args)
-        .args(["--journal", journal.to_str().expect("utf-8")])
-        .current_dir(root())
-        .stdin(Stdio::piped())
-        .stdout(std::fs::File::create(&out_path).expect("stdout file"))
-        .stderr(std::fs::File::create(&err_path).expect("stderr file"))
-        .spawn()
-        .expect("stitch run starts");
-    {
-        use std::io::Write;
-        let mut stdin = child.stdin.take().expect("stdin");
-        // A run that already ended (bad arguments) reads nothing: not an error here.
-        let _ = stdin.write_all(typed.as_bytes());
-    }
-    let deadline = Instant::now() + timeout;
-    let status = loop {
-        if let Some(s) = child.try_wait().expect("wait") {
-            break s;
-        }
-        if Instant::now() > deadline {
-            let _ = child.kill();
-            panic!(
-                "stitch run {args:?} did not end within {timeout:?}:\n{}",
-                std::fs::read_to_string(&err_path).unwrap_or_default()
-            );
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    };
-    Ran {
-        code: status.code(),
-        out: std::fs::read_to_string(&out_path).unwrap_or_default()
-            + &std::fs::read_to_string(&err_path).unwrap_or_default(),
-        journal: std::fs::read_to_string(journal).unwrap_or_default(),
-    }
 }
 
 /// A journal without its times: what must match between the two robots.
@@ -164,15 +30,22 @@ fn untimed(journal: &str) -> Vec<serde_json::Value> {
 
 /// Missions in process and over ROS 2 against one sim-node on domain `k`: seeds 1 to the
 /// runs `runs_var` says (else `default_runs`), STITCH and, every `human_every`-th,
-/// STITCH + Human, `extra` given to both. Each pair must end alike with journals equal but
-/// for their times. The sim-node, for its log.
-fn twins(k: u16, runs_var: &str, default_runs: u64, human_every: u64, extra: &[&str]) -> SimNode {
+/// STITCH + Human, `extra` given to both, `node_args` to the sim-node. Each pair must end
+/// alike with journals equal but for their times. The sim-node, for its log.
+fn twins(
+    k: u16,
+    runs_var: &str,
+    default_runs: u64,
+    human_every: u64,
+    extra: &[&str],
+    node_args: &[&str],
+) -> SimNode {
     let runs: u64 = std::env::var(runs_var)
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or(default_runs);
     let d = domain(k);
-    let node = SimNode::start(&d, &[]);
+    let node = SimNode::start(&d, node_args);
     for i in 0..runs {
         let seed = (i + 1).to_string();
         let plan = if i % human_every == human_every - 1 {
@@ -217,7 +90,7 @@ fn twins(k: u16, runs_var: &str, default_runs: u64, human_every: u64, extra: &[&
 fn missions_over_ros2_match_the_in_process_mock_seed_for_seed() {
     let _one = serial();
     // STITCH_ROS2_RUNS=20 for the acceptance's twenty in a row.
-    let node = twins(0, "STITCH_ROS2_RUNS", 3, 3, &[]);
+    let node = twins(0, "STITCH_ROS2_RUNS", 3, 3, &[], &[]);
     let log = node.log();
     assert!(log.contains("state_command enable"), "{log}");
     assert!(log.contains("state_command home"), "{log}");
@@ -230,7 +103,7 @@ fn pipeline_missions_over_ros2_match_the_in_process_mock_seed_for_seed() {
     // The stereo pairs go over the camera topics (rendered by the sim-node on each capture's
     // trigger), the pipeline runs here on what arrived: same outcomes as in process.
     let extra = ["--perception", "pipeline"];
-    let node = twins(8, "STITCH_ROS2_PIPELINE_RUNS", 2, 2, &extra);
+    let node = twins(8, "STITCH_ROS2_PIPELINE_RUNS", 2, 2, &extra, &[]);
     let log = node.log();
     assert!(log.contains("with the stereo camera"), "{log}");
 }
@@ -335,12 +208,23 @@ fn zero_stamps_are_refused_as_invalid() {
 }
 
 #[test]
-fn a_dropped_command_is_caught_and_the_arms_held() {
+fn a_lost_motion_command_is_sent_again_and_the_mission_goes_on() {
+    let _one = serial();
+    // The 5th motion command is lost; busy does not rise, so it is sent again (the sim-node
+    // counts that as motion 6), and the mission is the in-process one.
+    let node = twins(13, "", 1, 1, &[], &["--wire-fault", "drop-command@5"]);
+    let log = node.log();
+    assert!(log.contains("dropped motion 5"), "{log}");
+    assert!(log.contains("sim-node: motion 6 "), "{log}");
+}
+
+#[test]
+fn a_dvrk_that_takes_no_more_motions_is_caught_and_the_arms_held() {
     let _one = serial();
     faulted(
         5,
-        &["--wire-fault", "drop-command@5"],
-        "the arm never reported busy within 1 s",
+        &["--wire-fault", "deaf@5"],
+        "the arm never reported busy within 1 s (4 sends)",
     );
 }
 
@@ -448,18 +332,6 @@ fn without_a_dvrk_the_run_says_what_is_missing() {
         ran.out
     );
     assert!(ran.out.contains("stitch sim-node"), "{}", ran.out);
-}
-
-/// A `--dvrk-config` with `settings` (TOML lines of `[camera]`) and the hand-eye pose the
-/// sim-node's log gives for its camera, as a lab writes its measured one.
-fn hand_eye_config(node: &SimNode, k: u16, settings: &str) -> PathBuf {
-    node.wait_for("camera_to_robot = ", Duration::from_secs(5));
-    let log = node.log();
-    let at = log.find("camera_to_robot = ").expect("the hand-eye line");
-    let line = log[at..].lines().next().expect("a line");
-    let config = tmp(&format!("real-{k}.toml"));
-    std::fs::write(&config, format!("[camera]\n{settings}{line}\n")).expect("config");
-    config
 }
 
 fn real_args<'a>(d: &'a str, config: &'a Path) -> Vec<&'a str> {

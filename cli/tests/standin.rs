@@ -5,115 +5,17 @@
 //! must, and a whole `--no-simulator` mission.
 #![cfg(feature = "ros2")]
 
-use std::io::{BufRead, BufReader, Write};
-use std::path::{Path, PathBuf};
-use std::process::{Child, ChildStdin, Command, Stdio};
-use std::sync::Mutex;
-use std::sync::mpsc::{Receiver, channel};
+mod support;
+
 use std::time::{Duration, Instant};
 use stitch_dvrk::arm::{DvrkConfig, Ros2Dvrk};
 use stitch_dvrk::ros2::Ros2Options;
 use stitch_robot::{Arm, Pose};
-
-fn root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
-}
+use support::{SimNode, StandIn, hand_eye_config, run, serial, tmp};
 
 /// A domain of this test's own, above the ranges the other ROS 2 tests use.
 fn domain(k: u16) -> u16 {
     216 + k
-}
-
-/// One test at a time: each runs its own DDS participants on two cores, and the timing bounds
-/// are a real dVRK's.
-static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
-
-fn serial() -> std::sync::MutexGuard<'static, ()> {
-    ONE_AT_A_TIME
-        .lock()
-        .unwrap_or_else(std::sync::PoisonError::into_inner)
-}
-
-/// The stand-in's Python (a venv with Cyclone DDS from PyPI, made once by setup.sh).
-fn python() -> PathBuf {
-    let out = Command::new("bash")
-        .arg(root().join("dvrk/standin/setup.sh"))
-        .stderr(Stdio::inherit())
-        .output()
-        .expect("bash runs dvrk/standin/setup.sh");
-    assert!(
-        out.status.success(),
-        "dvrk/standin/setup.sh failed: the Cyclone DDS stand-in needs python3 with venv and \
-         PyPI reachable (see docs/dvrk.md)"
-    );
-    PathBuf::from(
-        String::from_utf8_lossy(&out.stdout)
-            .trim()
-            .lines()
-            .last()
-            .expect("a path"),
-    )
-}
-
-/// A running stand-in, killed when dropped; driven by lines on its standard input.
-struct StandIn {
-    child: Child,
-    stdin: ChildStdin,
-    lines: Receiver<String>,
-}
-
-impl StandIn {
-    fn start(domain: u16, args: &[&str]) -> Self {
-        let mut child = Command::new(python())
-            .arg(root().join("dvrk/standin/dvrk_standin.py"))
-            .args(["--domain-id", &domain.to_string()])
-            .args(args)
-            .stdin(Stdio::piped())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::inherit())
-            .spawn()
-            .expect("the stand-in starts");
-        let stdin = child.stdin.take().expect("stdin");
-        let stdout = child.stdout.take().expect("stdout");
-        let (tx, lines) = channel();
-        std::thread::spawn(move || {
-            for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-                if tx.send(line).is_err() {
-                    break;
-                }
-            }
-        });
-        let mut s = Self {
-            child,
-            stdin,
-            lines,
-        };
-        assert_eq!(s.line(Duration::from_secs(60)), "ready");
-        s
-    }
-
-    fn line(&mut self, timeout: Duration) -> String {
-        self.lines
-            .recv_timeout(timeout)
-            .expect("the stand-in answers within its timeout")
-    }
-
-    fn ask(&mut self, command: &str) -> String {
-        writeln!(self.stdin, "{command}").expect("the stand-in reads");
-        self.stdin.flush().expect("flush");
-        self.line(Duration::from_secs(10))
-    }
-
-    fn status(&mut self) -> serde_json::Value {
-        serde_json::from_str(&self.ask("status")).expect("status is JSON")
-    }
-}
-
-impl Drop for StandIn {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
 }
 
 fn percentile(sorted: &[f64], p: f64) -> f64 {
@@ -239,4 +141,80 @@ fn an_error_during_the_run_fails_it() {
         "nothing is commanded to a faulted arm"
     );
     nudge(&dvrk, 0).expect("PSM1 had no error");
+}
+
+/// The mock's arms' homes (`sim/`'s scene), so that the stand-in's arms stand where the
+/// camera's rendered jaws and needle are.
+const HOMES: [&str; 2] = [
+    "PSM1=-0.03,0.0,-0.09,0,0,0,1",
+    "PSM2=0.04,0.02,-0.09,0,0,0,1",
+];
+
+#[test]
+fn a_whole_mission_without_the_simulator_runs_against_the_cyclone_console() {
+    let _one = serial();
+    let d = domain(3);
+    // The arms: the stand-in, on Cyclone DDS. The camera: a sim-node streaming rendered pairs,
+    // its own arms on namespaces nobody uses.
+    let mut standin = StandIn::start(d, &["--pose", HOMES[0], "--pose", HOMES[1]]);
+    let names = tmp("standin-camera.toml");
+    std::fs::write(&names, "arms = [\"SIM1\", \"SIM2\"]\n").expect("names");
+    let node = SimNode::start(
+        &d.to_string(),
+        &[
+            "--camera-hz",
+            "15",
+            "--dvrk-config",
+            names.to_str().expect("utf-8"),
+        ],
+    );
+    let config = hand_eye_config(&node, 30, "");
+    let d = d.to_string();
+    let ran = run(
+        &[
+            "scripts/stitch.rhai",
+            "--robot",
+            "ros2",
+            "--no-simulator",
+            "--perception",
+            "pipeline",
+            "--domain-id",
+            &d,
+            "--dvrk-config",
+            config.to_str().expect("utf-8"),
+        ],
+        &tmp("standin-mission.jsonl"),
+        Duration::from_secs(240),
+    );
+    let status = standin.status();
+    assert!(
+        matches!(ran.code, Some(0 | 4)),
+        "{}\nstand-in: {status}",
+        ran.out
+    );
+    assert!(
+        ran.journal
+            .contains(r#""primitive":"insert","attempt":0,"outcome":{"result":"succeeded""#),
+        "the insertion ran:\n{}",
+        ran.journal
+    );
+    for arm in ["PSM1", "PSM2"] {
+        let c = &status[arm]["counts"];
+        assert!(c["move_cp"].as_u64() > Some(0), "{arm} moved: {status}");
+        assert!(
+            c["jaw/move_jp"].as_u64() > Some(0),
+            "{arm}'s jaw moved: {status}"
+        );
+        assert_eq!(c["refused"].as_u64(), Some(0), "{arm}: {status}");
+        assert_eq!(status[arm]["ratio"].as_f64(), Some(0.2), "{arm}: {status}");
+        assert_eq!(status[arm]["busy"], false, "{arm} ended idle: {status}");
+    }
+    assert!(
+        ran.journal
+            .lines()
+            .last()
+            .is_some_and(|l| l.contains("end")),
+        "the journal ends with the outcome:\n{}",
+        ran.journal
+    );
 }

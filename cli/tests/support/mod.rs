@@ -1,0 +1,242 @@
+//! What the tests over ROS 2 share: the `stitch` binary run under a deadline, a `stitch
+//! sim-node` and the Cyclone DDS stand-in of the dVRK console as child processes.
+// Each test binary uses part of this.
+#![allow(dead_code)]
+
+use std::io::{BufRead, BufReader, Write};
+use std::path::{Path, PathBuf};
+use std::process::{Child, ChildStdin, Command, Stdio};
+use std::sync::mpsc::{Receiver, channel};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+pub fn root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+pub fn tmp(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("stitch-cli-test-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    dir.join(name)
+}
+
+/// One test at a time: each runs two processes whose timing bounds (a 0.25 s stale bound, a
+/// 1 s busy rise) are a real dVRK's, not a loaded 2-core machine's with nine at once.
+static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
+
+pub fn serial() -> std::sync::MutexGuard<'static, ()> {
+    ONE_AT_A_TIME
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+/// A running `stitch sim-node`, killed when dropped; its log lines collected.
+pub struct SimNode {
+    child: Child,
+    log: Arc<Mutex<String>>,
+}
+
+impl SimNode {
+    pub fn start(domain: &str, args: &[&str]) -> Self {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_stitch"))
+            .args(["sim-node", "--domain-id", domain])
+            .args(args)
+            .current_dir(root())
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("stitch sim-node starts");
+        let log = Arc::new(Mutex::new(String::new()));
+        let (sink, stderr) = (Arc::clone(&log), child.stderr.take().expect("stderr"));
+        std::thread::spawn(move || {
+            for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+                let mut l = sink.lock().expect("log");
+                l.push_str(&line);
+                l.push('\n');
+            }
+        });
+        let node = Self { child, log };
+        node.wait_for("sim-node: ready", Duration::from_secs(30));
+        node
+    }
+
+    pub fn log(&self) -> String {
+        self.log.lock().expect("log").clone()
+    }
+
+    pub fn wait_for(&self, text: &str, timeout: Duration) {
+        let deadline = Instant::now() + timeout;
+        while !self.log().contains(text) {
+            assert!(
+                Instant::now() < deadline,
+                "sim-node did not say {text:?} within {timeout:?}:\n{}",
+                self.log()
+            );
+            std::thread::sleep(Duration::from_millis(10));
+        }
+    }
+
+    pub fn kill(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+impl Drop for SimNode {
+    fn drop(&mut self) {
+        self.kill();
+    }
+}
+
+/// What a `stitch run` printed and wrote.
+pub struct Ran {
+    pub code: Option<i32>,
+    pub out: String,
+    pub journal: String,
+}
+
+/// `stitch run`, killed (and the test failed) past `timeout`; nothing on its standard input.
+pub fn run(args: &[&str], journal: &Path, timeout: Duration) -> Ran {
+    run_typed(args, journal, timeout, "")
+}
+
+/// [`run`], with `typed` on its standard input (then end of input).
+pub fn run_typed(args: &[&str], journal: &Path, timeout: Duration, typed: &str) -> Ran {
+    let (out_path, err_path) = (
+        journal.with_extension("stdout"),
+        journal.with_extension("stderr"),
+    );
+    let mut child = Command::new(env!("CARGO_BIN_EXE_stitch"))
+        .arg("run")
+        .args(args)
+        .args(["--journal", journal.to_str().expect("utf-8")])
+        .current_dir(root())
+        .stdin(Stdio::piped())
+        .stdout(std::fs::File::create(&out_path).expect("stdout file"))
+        .stderr(std::fs::File::create(&err_path).expect("stderr file"))
+        .spawn()
+        .expect("stitch run starts");
+    {
+        use std::io::Write;
+        let mut stdin = child.stdin.take().expect("stdin");
+        // A run that already ended (bad arguments) reads nothing: not an error here.
+        let _ = stdin.write_all(typed.as_bytes());
+    }
+    let deadline = Instant::now() + timeout;
+    let status = loop {
+        if let Some(s) = child.try_wait().expect("wait") {
+            break s;
+        }
+        if Instant::now() > deadline {
+            let _ = child.kill();
+            panic!(
+                "stitch run {args:?} did not end within {timeout:?}:\n{}",
+                std::fs::read_to_string(&err_path).unwrap_or_default()
+            );
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    Ran {
+        code: status.code(),
+        out: format!(
+            "{}{}",
+            std::fs::read_to_string(&out_path).unwrap_or_default(),
+            std::fs::read_to_string(&err_path).unwrap_or_default()
+        ),
+        journal: std::fs::read_to_string(journal).unwrap_or_default(),
+    }
+}
+
+/// The stand-in's Python (a venv with Cyclone DDS from PyPI, made once by setup.sh).
+pub fn python() -> PathBuf {
+    let out = Command::new("bash")
+        .arg(root().join("dvrk/standin/setup.sh"))
+        .stderr(Stdio::inherit())
+        .output()
+        .expect("bash runs dvrk/standin/setup.sh");
+    assert!(
+        out.status.success(),
+        "dvrk/standin/setup.sh failed: the Cyclone DDS stand-in needs python3 with venv and \
+         PyPI reachable (see docs/dvrk.md)"
+    );
+    PathBuf::from(
+        String::from_utf8_lossy(&out.stdout)
+            .trim()
+            .lines()
+            .last()
+            .expect("a path"),
+    )
+}
+
+/// A running stand-in, killed when dropped; driven by lines on its standard input.
+pub struct StandIn {
+    child: Child,
+    stdin: ChildStdin,
+    lines: Receiver<String>,
+}
+
+impl StandIn {
+    pub fn start(domain: u16, args: &[&str]) -> Self {
+        let mut child = Command::new(python())
+            .arg(root().join("dvrk/standin/dvrk_standin.py"))
+            .args(["--domain-id", &domain.to_string()])
+            .args(args)
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .expect("the stand-in starts");
+        let stdin = child.stdin.take().expect("stdin");
+        let stdout = child.stdout.take().expect("stdout");
+        let (tx, lines) = channel();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+                if tx.send(line).is_err() {
+                    break;
+                }
+            }
+        });
+        let mut s = Self {
+            child,
+            stdin,
+            lines,
+        };
+        assert_eq!(s.line(Duration::from_secs(60)), "ready");
+        s
+    }
+
+    pub fn line(&mut self, timeout: Duration) -> String {
+        self.lines
+            .recv_timeout(timeout)
+            .expect("the stand-in answers within its timeout")
+    }
+
+    pub fn ask(&mut self, command: &str) -> String {
+        writeln!(self.stdin, "{command}").expect("the stand-in reads");
+        self.stdin.flush().expect("flush");
+        self.line(Duration::from_secs(10))
+    }
+
+    pub fn status(&mut self) -> serde_json::Value {
+        serde_json::from_str(&self.ask("status")).expect("status is JSON")
+    }
+}
+
+impl Drop for StandIn {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// A `--dvrk-config` with `settings` (TOML lines of `[camera]`) and the hand-eye pose the
+/// sim-node's log gives for its camera, as a lab writes its measured one.
+pub fn hand_eye_config(node: &SimNode, k: u16, settings: &str) -> PathBuf {
+    node.wait_for("camera_to_robot = ", Duration::from_secs(5));
+    let log = node.log();
+    let at = log.find("camera_to_robot = ").expect("the hand-eye line");
+    let line = log[at..].lines().next().expect("a line");
+    let config = tmp(&format!("real-{k}.toml"));
+    std::fs::write(&config, format!("[camera]\n{settings}{line}\n")).expect("config");
+    config
+}
