@@ -208,12 +208,20 @@ fn a_whole_mission_without_the_simulator_runs_against_the_cyclone_console() {
         assert_eq!(c["refused"].as_u64(), Some(0), "{arm}: {status}");
         assert_eq!(status[arm]["ratio"].as_f64(), Some(0.2), "{arm}: {status}");
         assert_eq!(status[arm]["busy"], false, "{arm} ended idle: {status}");
+        assert!(c["hold"].as_u64() >= Some(1), "{arm} was held: {status}");
     }
+    // The camera's needle never moves (nothing simulates it), so the mission fails at an
+    // extraction or ends: either way with both arms held and the outcome last.
+    assert!(
+        ran.journal.contains(r#""event":"hold""#),
+        "the run ends holding:\n{}",
+        ran.journal
+    );
     assert!(
         ran.journal
             .lines()
             .last()
-            .is_some_and(|l| l.contains("end")),
+            .is_some_and(|l| l.contains(r#""event":"finished""#)),
         "the journal ends with the outcome:\n{}",
         ran.journal
     );
