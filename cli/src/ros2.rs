@@ -64,7 +64,8 @@ pub struct SimNodeArgs {
     pub rate_hz: f64,
     /// Misbehave as a dVRK can, at the N-th motion command: arm-error@N (error, then FAULT),
     /// busy-stuck@N, stale-stamps@N, zero-stamps@N (every measurement from then on),
-    /// drop-command@N, camera-silent@N (no stereo images from then on), oracle-silent@N (no
+    /// drop-command@N (that one command, as if lost), deaf@N (every motion command from then
+    /// on), camera-silent@N (no stereo images from then on), oracle-silent@N (no
     /// side-channel answers from then on). Repeatable.
     #[arg(long = "wire-fault", value_name = "KIND@N")]
     pub wire_faults: Vec<WireFault>,

@@ -95,6 +95,48 @@ fn nudge(dvrk: &Ros2Dvrk, i: usize) -> Result<(), stitch_robot::RobotError> {
 }
 
 #[test]
+fn every_first_command_lost_is_sent_again_and_confirmed() {
+    let _one = serial();
+    let d = domain(4);
+    // A console whose command readers each drop the first sample they take, as a reader
+    // that did not know the writer yet does.
+    let mut standin = StandIn::start(d, &["--lose-first"]);
+    let dvrk = Ros2Dvrk::connect(&Ros2Options { domain_id: d }, &DvrkConfig::default())
+        .expect("the lost enable and set_ratio are sent again");
+    nudge(&dvrk, 0).expect("PSM1's lost first move_cp is sent again");
+    nudge(&dvrk, 1).expect("PSM2's too");
+    let status = standin.status();
+    for arm in ["PSM1", "PSM2"] {
+        let a = &status[arm];
+        assert_eq!(a["state"], "ENABLED", "{arm}: {a}");
+        assert_eq!(a["homed"], true, "{arm}: {a}");
+        assert_eq!(a["ratio"].as_f64(), Some(0.2), "{arm}: {a}");
+        // enable, set_ratio and move_cp each lost once.
+        assert_eq!(a["counts"]["lost"].as_u64(), Some(3), "{arm}: {a}");
+    }
+    assert!(dvrk.resends() >= 6, "resends: {}", dvrk.resends());
+}
+
+#[test]
+fn a_speed_ratio_the_dvrk_never_confirms_refuses_the_run() {
+    let _one = serial();
+    let d = domain(5);
+    let _standin = StandIn::start(d, &["--ignore", "trajectory_j/set_ratio"]);
+    let config = DvrkConfig {
+        connect_timeout_s: 3.0,
+        ..DvrkConfig::default()
+    };
+    let e = Ros2Dvrk::connect(&Ros2Options { domain_id: d }, &config)
+        .expect_err("a mission at the dVRK's own speed is refused");
+    let e = e.to_string();
+    assert!(
+        e.contains("trajectory_j/set_ratio: not done within 3.0 s, sent 4 time(s)")
+            && e.contains("says 1, not 0.2"),
+        "{e}"
+    );
+}
+
+#[test]
 fn an_old_latched_error_does_not_fail_a_new_run() {
     let _one = serial();
     let d = domain(1);

@@ -23,7 +23,10 @@ Driven on standard input, one command a line; every answer is one line on standa
   error ARM TEXT          -> publish TEXT on ARM's `error` and go to FAULT, now
   pose ARM x y z qx qy qz qw -> place ARM there (idle), as a surgeon's recovery would
   quit
-It prints `ready` once every topic exists.
+It prints `ready` once every topic exists. `--lose-first` drops the first sample each command
+topic of each arm takes after a reset, as a reader that did not know the writer yet does;
+`--ignore TOPIC` (repeatable) drops every sample of that command topic (a console that never
+answers it).
 """
 
 import json
@@ -162,8 +165,9 @@ def nlerp(a, b, s):
 
 
 class Arm:
-    def __init__(self, dp, name, pose):
+    def __init__(self, dp, name, pose, lose_first=False, ignore=()):
         self.name = name
+        self.lose_first, self.ignore = lose_first, set(ignore)
         self.lock = threading.Lock()
         self.home_pose = list(pose)
         w = lambda topic, ty, qos: DataWriter(dp, Topic(dp, f"rt/{name}/{topic}", ty), qos=qos)
@@ -196,7 +200,9 @@ class Arm:
             self.homing_until = None
             self.ratio = 1.0
             self.counts = {k: 0 for k in ("enable", "disable", "home", "move_cp", "servo_cp",
-                                          "hold", "jaw/move_jp", "set_ratio", "refused")}
+                                          "hold", "jaw/move_jp", "set_ratio", "refused",
+                                          "lost")}
+            self.seen = set()  # command topics that took a sample since the reset
         self.publish_state()
         self.ratio_out.write(Float64(data=self.ratio))
 
@@ -216,13 +222,24 @@ class Arm:
         self.error.write(String(data=f"{self.name}: {what} refused: arm is {self.state}, "
                                      f"homed {self.homed}"))
 
+    def take(self, topic, reader):
+        """`take`, less what this stand-in is told to lose."""
+        got = []
+        for s in take(reader):
+            if topic in self.ignore or (self.lose_first and topic not in self.seen):
+                self.seen.add(topic)
+                self.counts["lost"] += 1
+                continue
+            got.append(s)
+        return got
+
     def ready(self):
         return self.state == "ENABLED" and self.homed
 
     def step(self, now):
         changed = False
         with self.lock:
-            for s in take(self.state_command):
+            for s in self.take("state_command", self.state_command):
                 cmd = s.string
                 if cmd == "enable":
                     self.counts["enable"] += 1
@@ -236,16 +253,16 @@ class Arm:
                     self.counts["home"] += 1
                     if self.state == "ENABLED" and self.homing_until is None:
                         self.busy, self.homing_until, changed = True, now + HOMING_S, True
-            for s in take(self.set_ratio):
+            for s in self.take("trajectory_j/set_ratio", self.set_ratio):
                 self.counts["set_ratio"] += 1
                 if 0.0 < s.data <= 1.0:
                     self.ratio = s.data
                     self.ratio_out.write(Float64(data=self.ratio))
-            for _ in take(self.hold):
+            for _ in self.take("hold", self.hold):
                 self.counts["hold"] += 1
                 if self.motion is not None:
                     self.motion, self.busy, changed = None, False, True
-            for s in take(self.move_cp):
+            for s in self.take("move_cp", self.move_cp):
                 self.counts["move_cp"] += 1
                 if not self.ready():
                     self.refuse("move_cp")
@@ -256,12 +273,12 @@ class Arm:
                 dur = max(MIN_MOVE_S, d / (TOP_SPEED_M_S * self.ratio))
                 self.motion = ("cp", list(self.pose), goal, now, dur)
                 self.busy, changed = True, True
-            for s in take(self.servo_cp):
+            for s in self.take("servo_cp", self.servo_cp):
                 self.counts["servo_cp"] += 1
                 if self.ready() and self.motion is None:
                     p, o = s.pose.position, s.pose.orientation
                     self.pose = [p.x, p.y, p.z, o.x, o.y, o.z, o.w]
-            for s in take(self.jaw_move_jp):
+            for s in self.take("jaw/move_jp", self.jaw_move_jp):
                 self.counts["jaw/move_jp"] += 1
                 if not self.ready() or not s.position:
                     self.refuse("jaw/move_jp")
@@ -303,6 +320,10 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--domain-id", type=int, required=True)
     ap.add_argument("--arms", default="PSM1,PSM2")
+    ap.add_argument("--lose-first", action="store_true",
+                    help="drop the first sample of each command topic after each reset")
+    ap.add_argument("--ignore", action="append", default=[],
+                    help="a command topic (e.g. trajectory_j/set_ratio) whose samples are dropped")
     ap.add_argument("--pose", action="append", default=[],
                     help="ARM=x,y,z,qx,qy,qz,qw: where ARM starts (m, unit quaternion)")
     args = ap.parse_args()
@@ -311,7 +332,8 @@ def main():
     for p in args.pose:
         name, values = p.split("=")
         starts[name] = [float(v) for v in values.split(",")]
-    arms = {n: Arm(dp, n, starts.get(n, [0.0, 0.0, -0.1, 0.0, 0.0, 0.0, 1.0]))
+    arms = {n: Arm(dp, n, starts.get(n, [0.0, 0.0, -0.1, 0.0, 0.0, 0.0, 1.0]),
+                   lose_first=args.lose_first, ignore=args.ignore)
             for n in args.arms.split(",")}
     quit_flag = threading.Event()
 
