@@ -8,7 +8,7 @@ mod support;
 
 use std::path::Path;
 use std::time::{Duration, Instant};
-use support::{Ran, SimNode, hand_eye_config, run, run_typed, serial, tmp};
+use support::{Ran, SimNode, hand_eye_config, real_args, run, run_typed, serial, tmp};
 
 /// A domain of this test's own: away from 0, from other test processes, and from the other
 /// tests in this one (`k` is the test's number).
@@ -332,21 +332,6 @@ fn without_a_dvrk_the_run_says_what_is_missing() {
         ran.out
     );
     assert!(ran.out.contains("stitch sim-node"), "{}", ran.out);
-}
-
-fn real_args<'a>(d: &'a str, config: &'a Path) -> Vec<&'a str> {
-    vec![
-        "scripts/stitch.rhai",
-        "--robot",
-        "ros2",
-        "--no-simulator",
-        "--perception",
-        "pipeline",
-        "--domain-id",
-        d,
-        "--dvrk-config",
-        config.to_str().expect("utf-8"),
-    ]
 }
 
 #[test]

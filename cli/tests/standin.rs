@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 use stitch_dvrk::arm::{DvrkConfig, Ros2Dvrk};
 use stitch_dvrk::ros2::Ros2Options;
 use stitch_robot::{Arm, Pose};
-use support::{SimNode, StandIn, hand_eye_config, run, serial, tmp};
+use support::{SimNode, StandIn, hand_eye_config, real_args, run, serial, tmp};
 
 /// A domain of this test's own, above the ranges the other ROS 2 tests use.
 fn domain(k: u16) -> u16 {
@@ -213,18 +213,7 @@ fn a_whole_mission_without_the_simulator_runs_against_the_cyclone_console() {
     let config = hand_eye_config(&node, 30, "");
     let d = d.to_string();
     let ran = run(
-        &[
-            "scripts/stitch.rhai",
-            "--robot",
-            "ros2",
-            "--no-simulator",
-            "--perception",
-            "pipeline",
-            "--domain-id",
-            &d,
-            "--dvrk-config",
-            config.to_str().expect("utf-8"),
-        ],
+        &real_args(&d, &config),
         &tmp("standin-mission.jsonl"),
         Duration::from_secs(240),
     );

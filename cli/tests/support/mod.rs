@@ -240,3 +240,20 @@ pub fn hand_eye_config(node: &SimNode, k: u16, settings: &str) -> PathBuf {
     std::fs::write(&config, format!("[camera]\n{settings}{line}\n")).expect("config");
     config
 }
+
+/// `stitch run` STITCH on a real dVRK (`--no-simulator`, the stereo pipeline) on domain `d`
+/// with settings `config`.
+pub fn real_args<'a>(d: &'a str, config: &'a Path) -> Vec<&'a str> {
+    vec![
+        "scripts/stitch.rhai",
+        "--robot",
+        "ros2",
+        "--no-simulator",
+        "--perception",
+        "pipeline",
+        "--domain-id",
+        d,
+        "--dvrk-config",
+        config.to_str().expect("utf-8"),
+    ]
+}
