@@ -1,5 +1,5 @@
 //! Against a DDS that is not ours: a dVRK 2.x console stand-in on Cyclone DDS
-//! (`dvrk/standin/dvrk_standin.py`, its Python environment made by `dvrk/standin/setup.sh`)
+//! (`dvrk/standin/dvrk_standin.py`, its Python environment made by `tests/python/setup.sh`)
 //! with the console's QoS and arm state machine. Connects that must not lose their first
 //! command, an old latched error that must not fail a new run, an error during the run that
 //! must, and a whole `--no-simulator` mission.

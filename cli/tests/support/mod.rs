@@ -150,13 +150,13 @@ pub fn run_typed(args: &[&str], journal: &Path, timeout: Duration, typed: &str) 
 /// The stand-in's Python (a venv with Cyclone DDS from PyPI, made once by setup.sh).
 pub fn python() -> PathBuf {
     let out = Command::new("bash")
-        .arg(root().join("dvrk/standin/setup.sh"))
+        .arg(root().join("tests/python/setup.sh"))
         .stderr(Stdio::inherit())
         .output()
-        .expect("bash runs dvrk/standin/setup.sh");
+        .expect("bash runs tests/python/setup.sh");
     assert!(
         out.status.success(),
-        "dvrk/standin/setup.sh failed: the Cyclone DDS stand-in needs python3 with venv and \
+        "tests/python/setup.sh failed: the Cyclone DDS stand-in needs python3 with venv and \
          PyPI reachable (see docs/dvrk.md)"
     );
     PathBuf::from(
