@@ -7,19 +7,21 @@ mod mock;
 mod perceive;
 mod plot;
 #[cfg(feature = "ros2")]
+mod record;
 mod ros2;
 mod show;
 mod trials;
 
 use anyhow::Context;
 use clap::{Parser, Subcommand, ValueEnum};
+use record::is_mcap;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::Arc;
 use stitch_engine::{
-    ExploreOptions, Loaded, OutcomeSchedule, PlanErrors, PlanLoader, Report, RunOutcome, Runner,
-    ScriptLimits, ScriptedSupervisor, explore, mermaid, validate,
+    ExploreOptions, JournalSink, Loaded, OutcomeSchedule, PlanErrors, PlanLoader, Report,
+    RunOutcome, Runner, ScriptLimits, ScriptedSupervisor, explore, mermaid, validate,
 };
 use stitch_primitives::{MockPerception, OutcomeModel, ScriptedPrimitives, mock_primitives_with};
 use stitch_robot::{SimClock, Wound, WoundSpec};
@@ -104,7 +106,8 @@ enum Command {
         /// the defaults.
         #[arg(long)]
         mock_config: Option<PathBuf>,
-        /// Write the journal (JSON Lines) here.
+        /// Write the journal here: FILE.mcap streams it while the run goes (crash-safe,
+        /// ROS 2 tools read it; docs/journal.md), any other name gets JSON Lines at the end.
         #[arg(long)]
         journal: Option<PathBuf>,
         /// Replay an outcome schedule (JSON) instead of drawing outcomes from the seed
@@ -149,6 +152,11 @@ enum Command {
     /// for `stitch run --robot ros2` on one machine (see docs/dvrk.md). Runs until killed.
     #[cfg(feature = "ros2")]
     SimNode(ros2::SimNodeArgs),
+    /// Recorded runs (`stitch run --journal FILE.mcap`): export, recover (see docs/journal.md).
+    Journal {
+        #[command(subcommand)]
+        command: record::JournalCommand,
+    },
     /// Benchmarks: `stitch bench perception`, `stitch bench ros2`.
     Bench {
         #[command(subcommand)]
@@ -235,6 +243,7 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
             other => perceive::bench(other),
         },
         Command::Trials(args) => trials::trials(args),
+        Command::Journal { command } => record::journal(command),
         #[cfg(feature = "ros2")]
         Command::SimNode(args) => ros2::sim_node(args),
         Command::Check {
@@ -346,8 +355,24 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
             {
                 anyhow::bail!("--dvrk-config, --domain-id and --no-simulator are for --robot ros2");
             }
+            let recorder = match journal.as_deref().filter(|p| is_mcap(p)) {
+                Some(path) => Some(record::start(
+                    path,
+                    &plan,
+                    (outcomes.is_none()).then_some(seed),
+                    match robot {
+                        RobotKind::Mock => "mock",
+                        RobotKind::Scripted => "scripted",
+                        RobotKind::Ros2 => "ros2",
+                    },
+                    mock_config.as_deref(),
+                    robot == RobotKind::Ros2,
+                )?),
+                None => None,
+            };
+            let sink = recorder.as_ref().map(stitch_recorder::Recorder::sink);
             let report = match robot {
-                RobotKind::Scripted => run_scripted(&loaded, seed, outcomes.as_deref())?,
+                RobotKind::Scripted => run_scripted(&loaded, seed, outcomes.as_deref(), sink)?,
                 RobotKind::Ros2 | RobotKind::Mock => {
                     let perception = match perception {
                         PerceptionKind::Model => MockPerception::Model(mock.sensing),
@@ -359,17 +384,20 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
                     };
                     if robot == RobotKind::Ros2 {
                         let on = Ros2Run {
+                            sink,
                             dvrk_config,
                             domain_id,
                             simulator: !no_simulator,
                         };
                         run_ros2(&loaded, &mock.scene, perception, seed, on)?
                     } else {
-                        run_mock(&loaded, &mock.scene, perception, seed)?
+                        run_mock(&loaded, &mock.scene, perception, seed, sink)?
                     }
                 }
             };
-            if let Some(path) = journal {
+            if let Some(recorder) = recorder {
+                record::finish(recorder)?;
+            } else if let Some(path) = journal {
                 let file = std::fs::File::create(&path)
                     .with_context(|| format!("cannot write the journal to {}", path.display()))?;
                 report
@@ -433,6 +461,8 @@ fn robot_name(robot: RobotKind) -> &'static str {
 /// Where and how `--robot ros2` runs.
 #[cfg_attr(not(feature = "ros2"), allow(dead_code))] // refused without the feature
 struct Ros2Run {
+    /// Where the journal streams (the flight recorder).
+    sink: Option<JournalSink>,
     dvrk_config: Option<PathBuf>,
     domain_id: Option<String>,
     /// Against `stitch sim-node`, with its side channel (else a real dVRK).
@@ -454,9 +484,9 @@ fn run_ros2(
         None => stitch_dvrk::ros2::Ros2Options::from_env().map_err(anyhow::Error::msg)?,
     };
     if on.simulator {
-        ros2::run_ros2(loaded, scene, perception, seed, &ros, &config)
+        ros2::run_ros2(loaded, scene, perception, seed, &ros, &config, on.sink)
     } else {
-        ros2::run_real(loaded, scene, perception, seed, &ros, &config)
+        ros2::run_real(loaded, scene, perception, seed, &ros, &config, on.sink)
     }
 }
 
@@ -526,6 +556,7 @@ fn run_mock(
     scene: &SceneConfig,
     perception: MockPerception,
     seed: u64,
+    sink: Option<JournalSink>,
 ) -> anyhow::Result<Report> {
     let clock = SimClock::new();
     let (mut primitives, world) = mock_primitives_with(scene, perception, seed, clock.clone())
@@ -539,10 +570,16 @@ fn run_mock(
         Arc::new(clock),
         Some(seed),
     )
+    .streaming(sink)
     .run())
 }
 
-fn run_scripted(loaded: &Loaded, seed: u64, outcomes: Option<&Path>) -> anyhow::Result<Report> {
+fn run_scripted(
+    loaded: &Loaded,
+    seed: u64,
+    outcomes: Option<&Path>,
+    sink: Option<JournalSink>,
+) -> anyhow::Result<Report> {
     let clock = SimClock::new();
     let plan = Arc::new(loaded.plan.clone());
     let (mut primitives, mut supervisor) = match outcomes {
@@ -561,5 +598,6 @@ fn run_scripted(loaded: &Loaded, seed: u64, outcomes: Option<&Path>) -> anyhow::
         Arc::new(clock),
         seed,
     )
+    .streaming(sink)
     .run())
 }

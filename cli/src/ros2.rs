@@ -266,6 +266,7 @@ pub fn run_ros2(
     seed: u64,
     ros: &Ros2Options,
     config: &DvrkConfig,
+    sink: Option<stitch_engine::JournalSink>,
 ) -> anyhow::Result<Report> {
     let timeout = Duration::from_secs_f64(config.connect_timeout_s);
     let oracle = Oracle::connect(ros, timeout).map_err(|e| {
@@ -328,7 +329,11 @@ pub fn run_ros2(
         }),
         Arc::clone(&plan),
     );
-    Ok(Runner::new(plan, &mut primitives, &mut supervisor, clock, Some(seed)).run())
+    Ok(
+        Runner::new(plan, &mut primitives, &mut supervisor, clock, Some(seed))
+            .streaming(sink)
+            .run(),
+    )
 }
 
 /// The primitives' robot over ROS 2: the dVRK's first two arms and jaws (right, left), the
@@ -395,6 +400,7 @@ pub fn run_real(
     seed: u64,
     ros: &Ros2Options,
     config: &DvrkConfig,
+    sink: Option<stitch_engine::JournalSink>,
 ) -> anyhow::Result<Report> {
     if !matches!(perception, MockPerception::Pipeline(_)) {
         anyhow::bail!(
@@ -446,6 +452,7 @@ pub fn run_real(
         clock,
         Some(seed),
     )
+    .streaming(sink)
     .run())
 }
 

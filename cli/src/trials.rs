@@ -167,29 +167,34 @@ pub fn trials(args: TrialsArgs) -> anyhow::Result<u8> {
                     let j = next.fetch_add(1, Ordering::Relaxed);
                     let Some(&(p, seed)) = jobs.get(j) else { break };
                     let policy = &policies[p];
-                    let result =
-                        crate::run_mock(&policy.loaded, &mock.scene, perception.clone(), seed)
-                            .and_then(|report| {
-                                let record = TrialRecord::from_report(
-                                    &policy.name,
-                                    seed,
-                                    &policy.loaded.plan,
-                                    &report,
-                                );
-                                // Each journal goes to its file at once: memory holds only
-                                // the records, however many trials run.
-                                let path = args
-                                    .out
-                                    .join("journals")
-                                    .join(format!("{}-{seed}.jsonl", policy.key));
-                                let file = std::fs::File::create(&path)
-                                    .with_context(|| format!("cannot write {}", path.display()))?;
-                                report
-                                    .journal
-                                    .write_jsonl(std::io::BufWriter::new(file))
-                                    .with_context(|| format!("cannot write {}", path.display()))?;
-                                Ok(record)
-                            });
+                    let result = crate::run_mock(
+                        &policy.loaded,
+                        &mock.scene,
+                        perception.clone(),
+                        seed,
+                        None,
+                    )
+                    .and_then(|report| {
+                        let record = TrialRecord::from_report(
+                            &policy.name,
+                            seed,
+                            &policy.loaded.plan,
+                            &report,
+                        );
+                        // Each journal goes to its file at once: memory holds only
+                        // the records, however many trials run.
+                        let path = args
+                            .out
+                            .join("journals")
+                            .join(format!("{}-{seed}.jsonl", policy.key));
+                        let file = std::fs::File::create(&path)
+                            .with_context(|| format!("cannot write {}", path.display()))?;
+                        report
+                            .journal
+                            .write_jsonl(std::io::BufWriter::new(file))
+                            .with_context(|| format!("cannot write {}", path.display()))?;
+                        Ok(record)
+                    });
                     results
                         .lock()
                         .unwrap_or_else(std::sync::PoisonError::into_inner)[j] = Some(result);

@@ -170,11 +170,43 @@ pub struct Record {
     pub entry: Entry,
 }
 
-/// The journal of one run, kept in memory; [`Journal::write_jsonl`] writes it out.
-#[derive(Clone, Debug, Default, PartialEq)]
+/// Where each record goes as soon as it is journaled (a flight recorder), besides memory.
+pub type JournalSink = Box<dyn FnMut(&Record) + Send>;
+
+/// The journal of one run, kept in memory; [`Journal::write_jsonl`] writes it out, and a
+/// [`JournalSink`] set with [`Journal::stream_to`] gets every record the moment it is pushed.
+#[derive(Default)]
 pub struct Journal {
     records: Vec<Record>,
     now: Duration,
+    sink: Option<JournalSink>,
+}
+
+impl Clone for Journal {
+    /// The records and time; not the sink (one run, one recorder).
+    fn clone(&self) -> Self {
+        Self {
+            records: self.records.clone(),
+            now: self.now,
+            sink: None,
+        }
+    }
+}
+
+impl PartialEq for Journal {
+    fn eq(&self, other: &Self) -> bool {
+        self.records == other.records && self.now == other.now
+    }
+}
+
+impl std::fmt::Debug for Journal {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Journal")
+            .field("records", &self.records)
+            .field("now", &self.now)
+            .field("streaming", &self.sink.is_some())
+            .finish()
+    }
 }
 
 impl Journal {
@@ -188,14 +220,32 @@ impl Journal {
         self.now = now;
     }
 
-    /// Append an entry at the current time.
+    /// Append an entry at the current time (and hand it to the sink, if any).
     pub fn push(&mut self, entry: Entry) {
         let seq = self.records.len() as u64;
-        self.records.push(Record {
+        let record = Record {
             seq,
             t_s: self.now.as_secs_f64(),
             entry,
-        });
+        };
+        if let Some(sink) = &mut self.sink {
+            sink(&record);
+        }
+        self.records.push(record);
+    }
+
+    /// From now on, hand every record to `sink` as it is pushed; the records already
+    /// journaled go to it first, in order.
+    pub fn stream_to(&mut self, mut sink: JournalSink) {
+        for r in &self.records {
+            sink(r);
+        }
+        self.sink = Some(sink);
+    }
+
+    /// Stop streaming (the sink is dropped: a recorder's queue sender closes).
+    pub fn stop_streaming(&mut self) {
+        self.sink = None;
     }
 
     /// All records, in order.

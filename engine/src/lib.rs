@@ -15,7 +15,7 @@ pub use explore::{
     Action, EngineModel, Exploration, ExploreOptions, ExploreState, Needle, PROPERTY_NAMES,
     Verdict, Violation, World, explore, mermaid, schedule_of,
 };
-pub use journal::{AbortCause, Entry, Journal, Record, RunOutcome};
+pub use journal::{AbortCause, Entry, Journal, JournalSink, Record, RunOutcome};
 pub use machine::{
     Ctx, Cursor, Effect, Event, Mission, Pending, State, pending, recovery_condition, state_label,
     state_parts,

@@ -115,6 +115,15 @@ impl<'a> Runner<'a> {
         }
     }
 
+    /// Stream every record to `sink` (if any) as it is journaled (a flight recorder), those
+    /// already journaled first; the report's journal still holds them all.
+    pub fn streaming(mut self, sink: Option<crate::JournalSink>) -> Self {
+        if let Some(sink) = sink {
+            self.ctx.journal.stream_to(sink);
+        }
+        self
+    }
+
     /// The machine's current state.
     pub fn state(&self) -> &State {
         self.machine.state()
@@ -266,7 +275,11 @@ impl<'a> Runner<'a> {
             throws: self.throws,
             interventions,
             duration_s: self.clock.now().as_secs_f64(),
-            journal: std::mem::take(&mut self.ctx.journal),
+            journal: {
+                let mut journal = std::mem::take(&mut self.ctx.journal);
+                journal.stop_streaming();
+                journal
+            },
         }
     }
 }

@@ -147,7 +147,7 @@ pub fn run_typed(args: &[&str], journal: &Path, timeout: Duration, typed: &str) 
     }
 }
 
-/// The stand-in's Python (a venv with Cyclone DDS from PyPI, made once by setup.sh).
+/// The tests' Python (a venv from tests/python/requirements.txt, made once by setup.sh).
 pub fn python() -> PathBuf {
     let out = Command::new("bash")
         .arg(root().join("tests/python/setup.sh"))
@@ -156,7 +156,7 @@ pub fn python() -> PathBuf {
         .expect("bash runs tests/python/setup.sh");
     assert!(
         out.status.success(),
-        "tests/python/setup.sh failed: the Cyclone DDS stand-in needs python3 with venv and \
+        "tests/python/setup.sh failed: the tests' Python packages need python3 with venv and \
          PyPI reachable (see docs/dvrk.md)"
     );
     PathBuf::from(

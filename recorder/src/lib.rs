@@ -1,0 +1,42 @@
+#![doc = include_str!("../README.md")]
+
+mod msgs;
+mod read;
+mod write;
+
+pub use msgs::{CHANNELS, Channel, Event, Transition, schema_text};
+pub use read::{Recorded, read, recover, to_jsonl};
+pub use write::{Recorder, RecorderOptions, RunInfo, Stats};
+
+/// What can go wrong recording or reading a run.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum RecorderError {
+    /// The file could not be created, written or read.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file.
+        path: String,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// The MCAP layer refused (a bug, or a file that is not MCAP).
+    #[error("{path}: MCAP: {why}")]
+    Mcap {
+        /// The file.
+        path: String,
+        /// Why.
+        why: String,
+    },
+    /// A message could not be encoded or decoded.
+    #[error("{path}: {why}")]
+    Message {
+        /// The file.
+        path: String,
+        /// What and where.
+        why: String,
+    },
+    /// The writer thread is gone (it failed earlier: its error is in `Recorder::finish`).
+    #[error("the recorder's writer stopped: {0}")]
+    Stopped(String),
+}

@@ -1,0 +1,208 @@
+//! Reading a recorded run back: whole, or up to the last chunk an interrupted writer closed;
+//! [`recover`] writes a complete file from an unfinished one.
+
+use crate::RecorderError;
+use crate::msgs::Event;
+use mcap::read::{LinearReader, Options};
+use mcap::records::{self, Record as McapRecord};
+use std::borrow::Cow;
+use std::collections::BTreeMap;
+use std::path::Path;
+use stitch_engine::Record;
+
+/// What a recording holds.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Recorded {
+    /// The file's profile and writing library.
+    pub header: (String, String),
+    /// The run's metadata (`stitch_run`: program, plan file and hash, seed, robot).
+    pub metadata: Vec<(String, BTreeMap<String, String>)>,
+    /// Attachments: name, media type, bytes (the plan script, the mock configuration).
+    pub attachments: Vec<(String, String, Vec<u8>)>,
+    /// Schemas by id: name, encoding, text.
+    pub schemas: BTreeMap<u16, (String, String, Vec<u8>)>,
+    /// Channels by id.
+    pub channels: BTreeMap<u16, records::Channel>,
+    /// Every message in file order: channel, log time (ns), bytes.
+    pub messages: Vec<(u16, u64, Vec<u8>)>,
+    /// The engine's journal, from `/stitch/events`.
+    pub records: Vec<Record>,
+    /// Whether the file was finished (summary and footer written); an unfinished one was read
+    /// up to its last closed chunk.
+    pub complete: bool,
+}
+
+fn bad(path: &Path, why: impl std::fmt::Display) -> RecorderError {
+    RecorderError::Mcap {
+        path: path.display().to_string(),
+        why: why.to_string(),
+    }
+}
+
+/// Read `path`, finished or not (an interrupted run's file is read up to its last closed
+/// chunk; what follows it is not a record and is left).
+pub fn read(path: &Path) -> Result<Recorded, RecorderError> {
+    let buf = std::fs::read(path).map_err(|source| RecorderError::Io {
+        path: path.display().to_string(),
+        source,
+    })?;
+    let complete = LinearReader::new(&buf)
+        .map(|r| r.into_iter().all(|x| x.is_ok()))
+        .unwrap_or(false);
+    let mut out = Recorded {
+        complete,
+        ..Recorded::default()
+    };
+    let reader = LinearReader::new_with_options(&buf, Options::IgnoreEndMagic.into())
+        .map_err(|e| bad(path, format!("not an MCAP file: {e}")))?;
+    for record in reader {
+        // An unfinished file ends in a record cut short: everything before it stands.
+        let Ok(record) = record else { break };
+        take(path, &mut out, record)?;
+    }
+    if out.header.0.is_empty() {
+        return Err(bad(path, "no MCAP header"));
+    }
+    let events = out
+        .channels
+        .values()
+        .find(|c| c.topic == "/stitch/events")
+        .map(|c| c.id);
+    for (channel, _, bytes) in &out.messages {
+        if Some(*channel) != events {
+            continue;
+        }
+        let event: Event = stitch_dvrk::decode(bytes, "stitch_msgs/msg/Event").map_err(|e| {
+            RecorderError::Message {
+                path: path.display().to_string(),
+                why: e.to_string(),
+            }
+        })?;
+        let record: Record =
+            serde_json::from_str(&event.record_json).map_err(|e| RecorderError::Message {
+                path: path.display().to_string(),
+                why: format!("event {}: {e}", event.seq),
+            })?;
+        out.records.push(record);
+    }
+    Ok(out)
+}
+
+fn take(path: &Path, out: &mut Recorded, record: McapRecord<'_>) -> Result<(), RecorderError> {
+    match record {
+        McapRecord::Header(h) => out.header = (h.profile, h.library),
+        McapRecord::Metadata(m) => out.metadata.push((m.name, m.metadata)),
+        McapRecord::Attachment { header, data, .. } => {
+            out.attachments
+                .push((header.name, header.media_type, data.into_owned()));
+        }
+        McapRecord::Schema { header, data } => {
+            out.schemas
+                .insert(header.id, (header.name, header.encoding, data.into_owned()));
+        }
+        McapRecord::Channel(c) => {
+            out.channels.insert(c.id, c);
+        }
+        McapRecord::Message { header, data } => {
+            out.messages
+                .push((header.channel_id, header.log_time, data.into_owned()));
+        }
+        McapRecord::Chunk { header, data } => {
+            if !header.compression.is_empty() {
+                return Err(bad(
+                    path,
+                    format!(
+                        "a {} chunk: this build reads uncompressed chunks",
+                        header.compression
+                    ),
+                ));
+            }
+            for inner in LinearReader::sans_magic(&data) {
+                let inner = inner.map_err(|e| bad(path, format!("inside a chunk: {e}")))?;
+                take(path, out, inner)?;
+            }
+        }
+        _ => {}
+    }
+    Ok(())
+}
+
+/// Write to `to` a complete file holding everything `from` holds up to its last closed chunk:
+/// metadata, attachments, schemas, channels and messages, in order.
+pub fn recover(from: &Path, to: &Path) -> Result<Recorded, RecorderError> {
+    let got = read(from)?;
+    let file = std::fs::File::create(to).map_err(|source| RecorderError::Io {
+        path: to.display().to_string(),
+        source,
+    })?;
+    let err = |e: mcap::McapError| bad(to, e);
+    let mut w = mcap::WriteOptions::new()
+        .profile(got.header.0.clone())
+        .library(got.header.1.clone())
+        .compression(None)
+        .chunk_size(None)
+        .create(std::io::BufWriter::new(file))
+        .map_err(err)?;
+    for (name, metadata) in &got.metadata {
+        w.write_metadata(&records::Metadata {
+            name: name.clone(),
+            metadata: metadata.clone(),
+        })
+        .map_err(err)?;
+    }
+    for (name, media_type, data) in &got.attachments {
+        w.attach(&mcap::Attachment {
+            log_time: 0,
+            create_time: 0,
+            name: name.clone(),
+            media_type: media_type.clone(),
+            data: Cow::Borrowed(data),
+        })
+        .map_err(err)?;
+    }
+    let mut schema_ids = BTreeMap::new();
+    for (id, (name, encoding, data)) in &got.schemas {
+        schema_ids.insert(*id, w.add_schema(name, encoding, data).map_err(err)?);
+    }
+    let mut channel_ids = BTreeMap::new();
+    for (id, c) in &got.channels {
+        let schema = schema_ids.get(&c.schema_id).copied().unwrap_or(0);
+        channel_ids.insert(
+            *id,
+            w.add_channel(schema, &c.topic, &c.message_encoding, &c.metadata)
+                .map_err(err)?,
+        );
+    }
+    let mut sequence: BTreeMap<u16, u32> = BTreeMap::new();
+    for (channel, t, data) in &got.messages {
+        let Some(id) = channel_ids.get(channel) else {
+            return Err(bad(from, format!("a message on unknown channel {channel}")));
+        };
+        let seq = sequence.entry(*id).or_default();
+        w.write_to_known_channel(
+            &records::MessageHeader {
+                channel_id: *id,
+                sequence: *seq,
+                log_time: *t,
+                publish_time: *t,
+            },
+            data,
+        )
+        .map_err(err)?;
+        *seq += 1;
+    }
+    w.finish().map_err(err)?;
+    Ok(got)
+}
+
+/// Records as JSON Lines, as the journal writes them.
+pub fn to_jsonl(records: &[Record]) -> String {
+    let mut out = String::new();
+    for r in records {
+        if let Ok(line) = serde_json::to_string(r) {
+            out.push_str(&line);
+            out.push('\n');
+        }
+    }
+    out
+}
