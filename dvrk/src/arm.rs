@@ -5,8 +5,10 @@
 //! A `move_cp` is "busy rises, then falls" on the arm's latched `operating_state`, within a
 //! timeout, then a check that `measured_cp` ended within tolerance of the goal. Measurements
 //! with a zero stamp (CRTK's "invalid") or older than a bound are refused; every `error` the
-//! dVRK publishes fails the command under way (and the next one). A motion that fails is
-//! stopped with `hold`.
+//! dVRK publishes during this connection fails the command under way (and the next one);
+//! one it latched from before is kept apart. A motion that fails is stopped with `hold`.
+//! Every command whose effect the dVRK shows is confirmed by that effect and sent again,
+//! bounded, while it does not show (a first command can be lost: docs/dvrk.md).
 
 use crate::msg::{self, Empty, Float64, JointState, OperatingState, PoseStamped, StringStamped};
 use crate::ros2::{
