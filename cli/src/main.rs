@@ -6,8 +6,8 @@ mod console;
 mod mock;
 mod perceive;
 mod plot;
-#[cfg(feature = "ros2")]
 mod record;
+#[cfg(feature = "ros2")]
 mod ros2;
 mod show;
 mod trials;

@@ -381,7 +381,10 @@ fn hold_on_interrupt(dvrk: &Arc<Ros2Dvrk>) {
         if let Some(d) = weak.upgrade() {
             d.hold_all();
             std::thread::sleep(stitch_dvrk::ros2::HOLD_LINGER);
-            eprintln!("interrupted: hold sent to both arms; the run ends (no journal written)");
+            eprintln!(
+                "interrupted: hold sent to both arms; the run ends (no JSON Lines journal; an \
+                 MCAP journal holds the run to its last closed chunk)"
+            );
         }
         std::process::exit(i32::from(crate::exit::MISSION_ABORTED));
     });
