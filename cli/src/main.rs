@@ -20,10 +20,13 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::Arc;
 use stitch_engine::{
-    ExploreOptions, JournalSink, Loaded, OutcomeSchedule, PlanErrors, PlanLoader, Report,
-    RunOutcome, Runner, ScriptLimits, ScriptedSupervisor, explore, mermaid, validate,
+    ExploreOptions, Loaded, OutcomeSchedule, PlanErrors, PlanLoader, Report, RunOutcome, Runner,
+    ScriptLimits, ScriptedSupervisor, explore, mermaid, validate,
 };
-use stitch_primitives::{MockPerception, OutcomeModel, ScriptedPrimitives, mock_primitives_with};
+use stitch_primitives::{
+    MockPerception, OutcomeModel, ScriptedPrimitives, mock_primitives_observed,
+};
+use stitch_recorder::Recorder;
 use stitch_robot::{SimClock, Wound, WoundSpec};
 use stitch_sim::{CameraConfig, SceneConfig, SensingConfig};
 
@@ -110,6 +113,10 @@ enum Command {
         /// ROS 2 tools read it; docs/journal.md), any other name gets JSON Lines at the end.
         #[arg(long)]
         journal: Option<PathBuf>,
+        /// With --journal FILE.mcap and --perception pipeline: record the camera's stereo
+        /// pairs (JPEG) at most this often, Hz; 0: none.
+        #[arg(long, default_value_t = 0.0, value_name = "HZ")]
+        record_frames: f64,
         /// Replay an outcome schedule (JSON) instead of drawing outcomes from the seed
         /// (scripted robot only).
         #[arg(long)]
@@ -319,6 +326,7 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
             seed,
             robot,
             journal,
+            record_frames,
             outcomes,
             json,
             skip_validation,
@@ -367,12 +375,18 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
                     },
                     mock_config.as_deref(),
                     robot == RobotKind::Ros2,
+                    record_frames,
                 )?),
+                None if record_frames != 0.0 => {
+                    anyhow::bail!(
+                        "--record-frames records into an MCAP journal: add --journal FILE.mcap"
+                    )
+                }
                 None => None,
             };
-            let sink = recorder.as_ref().map(stitch_recorder::Recorder::sink);
+            let rec = recorder.as_ref();
             let report = match robot {
-                RobotKind::Scripted => run_scripted(&loaded, seed, outcomes.as_deref(), sink)?,
+                RobotKind::Scripted => run_scripted(&loaded, seed, outcomes.as_deref(), rec)?,
                 RobotKind::Ros2 | RobotKind::Mock => {
                     let perception = match perception {
                         PerceptionKind::Model => MockPerception::Model(mock.sensing),
@@ -384,14 +398,14 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
                     };
                     if robot == RobotKind::Ros2 {
                         let on = Ros2Run {
-                            sink,
+                            recorder: rec,
                             dvrk_config,
                             domain_id,
                             simulator: !no_simulator,
                         };
                         run_ros2(&loaded, &mock.scene, perception, seed, on)?
                     } else {
-                        run_mock(&loaded, &mock.scene, perception, seed, sink)?
+                        run_mock(&loaded, &mock.scene, perception, seed, rec)?
                     }
                 }
             };
@@ -460,9 +474,9 @@ fn robot_name(robot: RobotKind) -> &'static str {
 
 /// Where and how `--robot ros2` runs.
 #[cfg_attr(not(feature = "ros2"), allow(dead_code))] // refused without the feature
-struct Ros2Run {
-    /// Where the journal streams (the flight recorder).
-    sink: Option<JournalSink>,
+struct Ros2Run<'a> {
+    /// The flight recorder, if the run is recorded.
+    recorder: Option<&'a Recorder>,
     dvrk_config: Option<PathBuf>,
     domain_id: Option<String>,
     /// Against `stitch sim-node`, with its side channel (else a real dVRK).
@@ -475,7 +489,7 @@ fn run_ros2(
     scene: &SceneConfig,
     perception: MockPerception,
     seed: u64,
-    on: Ros2Run,
+    on: Ros2Run<'_>,
 ) -> anyhow::Result<Report> {
     let config = ros2::read_dvrk_config(on.dvrk_config.as_deref())?;
     let ros = match on.domain_id {
@@ -484,9 +498,9 @@ fn run_ros2(
         None => stitch_dvrk::ros2::Ros2Options::from_env().map_err(anyhow::Error::msg)?,
     };
     if on.simulator {
-        ros2::run_ros2(loaded, scene, perception, seed, &ros, &config, on.sink)
+        ros2::run_ros2(loaded, scene, perception, seed, &ros, &config, on.recorder)
     } else {
-        ros2::run_real(loaded, scene, perception, seed, &ros, &config, on.sink)
+        ros2::run_real(loaded, scene, perception, seed, &ros, &config, on.recorder)
     }
 }
 
@@ -496,7 +510,7 @@ fn run_ros2(
     _: &SceneConfig,
     _: MockPerception,
     _: u64,
-    _: Ros2Run,
+    _: Ros2Run<'_>,
 ) -> anyhow::Result<Report> {
     anyhow::bail!(
         "--robot ros2: this stitch was built without the `ros2` feature; rebuild with \
@@ -556,11 +570,23 @@ fn run_mock(
     scene: &SceneConfig,
     perception: MockPerception,
     seed: u64,
-    sink: Option<JournalSink>,
+    recorder: Option<&Recorder>,
 ) -> anyhow::Result<Report> {
     let clock = SimClock::new();
-    let (mut primitives, world) = mock_primitives_with(scene, perception, seed, clock.clone())
-        .context("invalid mock configuration")?;
+    let tap = recorder.map(|r| r.tap(Arc::new(clock.clone())));
+    let frames = tap.as_ref().and_then(stitch_recorder::Tap::frames);
+    let (primitives, world) =
+        mock_primitives_observed(scene, perception, seed, clock.clone(), frames)
+            .context("invalid mock configuration")?;
+    let mut primitives = match tap {
+        Some(tap) => {
+            let truth = world.clone();
+            primitives.map_rig(|rig| {
+                tap.rig(rig, Some(Box::new(move || Some(truth.needle_truth().pose))))
+            })
+        }
+        None => primitives,
+    };
     let plan = Arc::new(loaded.plan.clone());
     let mut supervisor = mock::MockSupervisor::new(world, Arc::clone(&plan));
     Ok(Runner::new(
@@ -570,7 +596,7 @@ fn run_mock(
         Arc::new(clock),
         Some(seed),
     )
-    .streaming(sink)
+    .streaming(recorder.map(Recorder::sink))
     .run())
 }
 
@@ -578,7 +604,7 @@ fn run_scripted(
     loaded: &Loaded,
     seed: u64,
     outcomes: Option<&Path>,
-    sink: Option<JournalSink>,
+    recorder: Option<&Recorder>,
 ) -> anyhow::Result<Report> {
     let clock = SimClock::new();
     let plan = Arc::new(loaded.plan.clone());
@@ -598,6 +624,6 @@ fn run_scripted(
         Arc::new(clock),
         seed,
     )
-    .streaming(sink)
+    .streaming(recorder.map(Recorder::sink))
     .run())
 }

@@ -21,7 +21,11 @@ pub fn start(
     robot: &str,
     mock_config: Option<&Path>,
     real_time: bool,
+    frames_hz: f64,
 ) -> anyhow::Result<Recorder> {
+    if !(frames_hz.is_finite() && frames_hz >= 0.0) {
+        anyhow::bail!("--record-frames {frames_hz}: expected a rate ≥ 0 Hz (0: no frames)");
+    }
     let plan_text =
         std::fs::read_to_string(plan).with_context(|| format!("cannot read {}", plan.display()))?;
     let mock_config = mock_config
@@ -40,6 +44,9 @@ pub fn start(
         &info,
         RecorderOptions {
             wall_flush: real_time,
+            max_frame_queue_bytes: 0,
+            frame_period: (frames_hz > 0.0)
+                .then(|| std::time::Duration::from_secs_f64(1.0 / frames_hz)),
         },
     )
     .with_context(|| format!("cannot record the journal to {}", path.display()))

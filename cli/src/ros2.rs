@@ -20,7 +20,8 @@ use stitch_perception::{
 use stitch_primitives::{
     FailureKind, MockPerception, Observer, PassObservation, Rig, RobotPrimitives, mock_layout,
 };
-use stitch_robot::{Clock, StereoCamera, WallClock, WoundPoint};
+use stitch_recorder::Recorder;
+use stitch_robot::{Arm, Clock, Jaw, ObservedCamera, StereoCamera, WallClock, WoundPoint};
 use stitch_sim::{CameraConfig, SceneConfig, SensingConfig, Streams, Subsystem};
 
 /// Where on ROS 2.
@@ -225,19 +226,18 @@ impl Trigger for SimTrigger {
     }
 }
 
-/// The stereo camera over ROS 2 with the pipeline on its pairs, as the in-process mock runs
-/// it for `--perception pipeline`: the calibration from `camera_info`, the hand-eye pose
+/// The stereo camera over ROS 2 and the pipeline for its pairs, as the in-process mock runs
+/// them for `--perception pipeline`: the calibration from `camera_info`, the hand-eye pose
 /// from the configuration or else the simulated camera's own, each capture triggered over
 /// the simulator's side channel.
-fn pipeline_estimator(
+fn sim_camera(
     ros: &Ros2Options,
     config: &DvrkConfig,
     camera: &CameraConfig,
     scene: &SceneConfig,
     oracle: &Arc<Oracle>,
     clock: Arc<dyn Clock>,
-    seed: u64,
-) -> anyhow::Result<Box<dyn NeedleEstimator>> {
+) -> anyhow::Result<(Ros2Camera, NeedlePipeline)> {
     let camera_to_robot = match &config.camera.camera_to_robot {
         Some(h) => h.pose().map_err(anyhow::Error::msg)?,
         None => camera.camera_to_robot(),
@@ -253,7 +253,7 @@ fn pipeline_estimator(
     .context("cannot connect to the stereo camera")?;
     let pipeline = NeedlePipeline::classical(camera.calibration().clone(), scene.needle)
         .context("the stereo camera's calibration")?;
-    Ok(Box::new(PipelineEstimator::new(camera, pipeline, seed)))
+    Ok((camera, pipeline))
 }
 
 /// Run `loaded` over ROS 2: connect to the dVRK's arms, and to the simulator's side channel
@@ -266,7 +266,7 @@ pub fn run_ros2(
     seed: u64,
     ros: &Ros2Options,
     config: &DvrkConfig,
-    sink: Option<stitch_engine::JournalSink>,
+    recorder: Option<&Recorder>,
 ) -> anyhow::Result<Report> {
     let timeout = Duration::from_secs_f64(config.connect_timeout_s);
     let oracle = Oracle::connect(ros, timeout).map_err(|e| {
@@ -303,8 +303,17 @@ pub fn run_ros2(
         .map_err(anyhow::Error::msg)?;
     dvrk.wait_fresh(timeout)?;
     let clock: Arc<dyn Clock> = Arc::new(WallClock::new());
+    let tap = recorder.map(|r| r.tap(Arc::clone(&clock)));
+    let frames = tap.as_ref().and_then(stitch_recorder::Tap::frames);
     let estimator: Box<dyn NeedleEstimator> = match &camera {
-        Some(c) => pipeline_estimator(ros, config, c, scene, &oracle, clock.clone(), seed)?,
+        Some(c) => {
+            let (camera, pipeline) = sim_camera(ros, config, c, scene, &oracle, clock.clone())?;
+            Box::new(PipelineEstimator::new(
+                ObservedCamera::new(camera, frames),
+                pipeline,
+                seed,
+            ))
+        }
         None => Box::new(RemoteEstimator(Arc::clone(&oracle))),
     };
     let observer = RemoteObserver {
@@ -319,7 +328,7 @@ pub fn run_ros2(
         &sensing,
         seed,
     )?;
-    let mut primitives = RobotPrimitives::new(rig);
+    let mut primitives = RobotPrimitives::new(tapped(rig, tap, &dvrk));
     let plan = Arc::new(loaded.plan.clone());
     let (o, d) = (Arc::clone(&oracle), Arc::clone(&dvrk));
     let mut supervisor = crate::mock::MockSupervisor::with(
@@ -331,7 +340,7 @@ pub fn run_ros2(
     );
     Ok(
         Runner::new(plan, &mut primitives, &mut supervisor, clock, Some(seed))
-            .streaming(sink)
+            .streaming(recorder.map(Recorder::sink))
             .run(),
     )
 }
@@ -403,7 +412,7 @@ pub fn run_real(
     seed: u64,
     ros: &Ros2Options,
     config: &DvrkConfig,
-    sink: Option<stitch_engine::JournalSink>,
+    recorder: Option<&Recorder>,
 ) -> anyhow::Result<Report> {
     if !matches!(perception, MockPerception::Pipeline(_)) {
         anyhow::bail!(
@@ -433,7 +442,13 @@ pub fn run_real(
     let pipeline = NeedlePipeline::classical(camera.calibration().clone(), scene.needle)
         .context("the stereo camera's calibration")?;
     let dvrk = connect_arms(ros, config)?;
-    let estimator = Box::new(PipelineEstimator::new(camera, pipeline, seed));
+    let tap = recorder.map(|r| r.tap(Arc::clone(&clock)));
+    let frames = tap.as_ref().and_then(stitch_recorder::Tap::frames);
+    let estimator = Box::new(PipelineEstimator::new(
+        ObservedCamera::new(camera, frames),
+        pipeline,
+        seed,
+    ));
     let rig = rig(
         &dvrk,
         estimator,
@@ -442,7 +457,7 @@ pub fn run_real(
         &SensingConfig::default(),
         seed,
     )?;
-    let mut primitives = RobotPrimitives::new(rig);
+    let mut primitives = RobotPrimitives::new(tapped(rig, tap, &dvrk));
     eprintln!(
         "no simulator: nothing scores the passes or watches the thread. What the robot cannot \
          sense (a caught thread, a missed exit point) is yours to see: type pause or abort."
@@ -455,8 +470,67 @@ pub fn run_real(
         clock,
         Some(seed),
     )
-    .streaming(sink)
+    .streaming(recorder.map(Recorder::sink))
     .run())
+}
+
+/// How often a recorded run samples the dVRK's arms between the primitives' calls, s.
+const SAMPLE_PERIOD: Duration = Duration::from_millis(50);
+
+/// `rig` with a recorder's tap on it, if the run is recorded, and a sampler recording each
+/// arm's measured and setpoint poses and jaw at 20 Hz, and its operating states and errors
+/// as they change.
+fn tapped(rig: Rig, tap: Option<stitch_recorder::Tap>, dvrk: &Arc<Ros2Dvrk>) -> Rig {
+    let Some(tap) = tap else {
+        return rig;
+    };
+    let weak = Arc::downgrade(dvrk);
+    let mut seen: Vec<(Option<stitch_dvrk::msg::OperatingState>, usize)> = Vec::new();
+    tap.sample_every(SAMPLE_PERIOD, move |tap| {
+        // The run is over once the dVRK is dropped.
+        let Some(dvrk) = weak.upgrade() else {
+            return false;
+        };
+        for (i, state) in dvrk.states().into_iter().enumerate() {
+            if seen.len() <= i {
+                seen.push((None, 0));
+            }
+            let (last, errors) = &mut seen[i];
+            if state.operating != *last {
+                if let Some(s) = &state.operating {
+                    tap.operating_state(&state.name, s);
+                }
+                *last = state.operating.clone();
+            }
+            for e in state.errors.iter().skip(*errors) {
+                tap.log(
+                    stitch_recorder::Log::ERROR,
+                    &state.name,
+                    &format!("error: {e}"),
+                );
+            }
+            *errors = state.errors.len();
+            if let Some(arm) = dvrk.arm(i) {
+                if let Ok(p) = arm.measured_cp() {
+                    tap.pose(&format!("/{}/measured_cp", state.name), &p);
+                }
+                if let Ok(p) = arm.setpoint_cp() {
+                    tap.pose(&format!("/{}/setpoint_cp", state.name), &p);
+                }
+            }
+            if let Some(jaw) = dvrk.jaw(i) {
+                if let Ok(a) = jaw.measured_jp() {
+                    tap.jaw_angle(
+                        &format!("/{}/jaw/measured_js", state.name),
+                        &format!("{}_jaw", state.name),
+                        a,
+                    );
+                }
+            }
+        }
+        true
+    });
+    tap.rig(rig, None)
 }
 
 /// `stitch bench ros2`.

@@ -125,9 +125,18 @@ fn a_file_cut_short_is_read_to_its_last_closed_chunk_and_recovered_whole() {
 
 #[test]
 fn readers_this_project_did_not_write_decode_every_message() {
+    let pipeline = [
+        "--seed",
+        "1",
+        "--perception",
+        "pipeline",
+        "--record-frames",
+        "1",
+    ];
     let files = [
         record("py-mock.mcap", &["--seed", "1"]),
         record("py-scripted.mcap", &["--seed", "1", "--robot", "scripted"]),
+        record("py-pipeline.mcap", &pipeline),
     ];
     let out = Command::new(python())
         .arg(root().join("tests/python/read_mcap.py"))
@@ -140,6 +149,47 @@ fn readers_this_project_did_not_write_decode_every_message() {
         "{said}\n{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    assert_eq!(said.matches(r#""agree": true"#).count(), 2, "{said}");
+    assert_eq!(said.matches(r#""agree": true"#).count(), 3, "{said}");
     assert!(said.contains("/stitch/transitions"), "{said}");
+    let lines: Vec<&str> = said.lines().collect();
+    // What the arms were told and measured, what the estimator said (and the truth beside
+    // it), on the mock; camera frames where the estimator looks at images.
+    for topic in [
+        "/PSM1/move_cp",
+        "/PSM2/move_cp",
+        "/PSM1/measured_cp",
+        "/PSM1/jaw/move_jp",
+        "/stitch/needle/estimate",
+        "/stitch/needle/truth",
+    ] {
+        assert!(
+            lines[0].contains(&format!("\"{topic}\"")),
+            "{topic}: {}",
+            lines[0]
+        );
+        assert!(
+            !lines[1].contains(topic),
+            "the scripted robot has no arms: {}",
+            lines[1]
+        );
+    }
+    for topic in FRAME_TOPICS {
+        assert!(
+            !lines[0].contains(topic),
+            "no frames without images: {}",
+            lines[0]
+        );
+        assert!(lines[2].contains(topic), "{topic}: {}", lines[2]);
+    }
+    // The recorder's taps change nothing: the pipeline run's journal is the one without it.
+    let jsonl = record("py-pipeline.jsonl", &pipeline[..4]);
+    assert_eq!(
+        export(&files[2]),
+        std::fs::read_to_string(jsonl).expect("jsonl")
+    );
 }
+
+const FRAME_TOPICS: [&str; 2] = [
+    "/stitch/camera/left/image/compressed",
+    "/stitch/camera/right/image/compressed",
+];

@@ -430,6 +430,17 @@ enum Check {
 /// console delivers when we join: its end is this long without one.
 const LATCHED_QUIET: Duration = Duration::from_millis(100);
 
+/// What an arm has said: see [`Ros2Dvrk::states`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct ArmState {
+    /// The arm, e.g. `PSM1`.
+    pub name: String,
+    /// Its last `operating_state`, if one came.
+    pub operating: Option<OperatingState>,
+    /// Every `error` of this connection, in order.
+    pub errors: Vec<String>,
+}
+
 /// The dVRK over ROS 2: the bus and every arm it met.
 #[derive(Debug)]
 pub struct Ros2Dvrk {
@@ -563,6 +574,22 @@ impl Ros2Dvrk {
                     .iter()
                     .map(move |e| format!("/{name}/error: {e}"))
                     .collect::<Vec<_>>()
+            })
+            .collect()
+    }
+
+    /// What each arm has said so far: its name, its last operating state and every `error`
+    /// of this connection, in order (for a recorder to record as they change).
+    pub fn states(&self) -> Vec<ArmState> {
+        self.links
+            .iter()
+            .map(|l| {
+                let h = l.heard();
+                ArmState {
+                    name: l.name.clone(),
+                    operating: h.state.clone(),
+                    errors: h.errors.clone(),
+                }
             })
             .collect()
     }

@@ -8,7 +8,7 @@ mod scripted;
 
 pub use mock::{
     MockObserver, MockPerception, PIPELINE_FRAME_TIME_S, mock_layout, mock_primitives,
-    mock_primitives_with,
+    mock_primitives_observed, mock_primitives_with,
 };
 pub use outcome::{Failure, FailureKind, Measurements, StepOutcome};
 pub use params::*;

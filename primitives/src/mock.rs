@@ -5,7 +5,7 @@ use crate::{FailureKind, Layout, Observer, PassObservation, Rig, RobotPrimitives
 use std::sync::Arc;
 use std::time::Duration;
 use stitch_perception::{ModelEstimator, NeedleEstimator, NeedlePipeline, PipelineEstimator};
-use stitch_robot::{Point, SimClock, WoundPoint};
+use stitch_robot::{FrameObserver, ObservedCamera, Point, SimClock, WoundPoint};
 use stitch_sim::{
     CameraConfig, MockCamera, MockDvrk, SceneConfig, SensingConfig, Side, SimError, StereoRenderer,
     Streams, Subsystem,
@@ -117,6 +117,18 @@ pub fn mock_primitives_with(
     seed: u64,
     clock: SimClock,
 ) -> Result<(RobotPrimitives, MockDvrk), SimError> {
+    mock_primitives_observed(scene, perception, seed, clock, None)
+}
+
+/// [`mock_primitives_with`], with every frame the mock's camera renders for the pipeline
+/// shown to `frames` (a recorder's tap; nothing without the pipeline).
+pub fn mock_primitives_observed(
+    scene: &SceneConfig,
+    perception: MockPerception,
+    seed: u64,
+    clock: SimClock,
+    frames: Option<FrameObserver>,
+) -> Result<(RobotPrimitives, MockDvrk), SimError> {
     let streams = Streams::new(seed);
     let world = MockDvrk::new(scene, streams, clock)?;
     let (estimator, corner): (Box<dyn NeedleEstimator>, SensingConfig) = match perception {
@@ -127,11 +139,14 @@ pub fn mock_primitives_with(
         MockPerception::Pipeline(camera) => {
             let renderer = StereoRenderer::new(*camera, world.phantom_view())?;
             let calibration = renderer.calibration().clone();
-            let camera = MockCamera::new(
-                world.clone(),
-                renderer,
-                streams,
-                Duration::from_secs_f64(PIPELINE_FRAME_TIME_S),
+            let camera = ObservedCamera::new(
+                MockCamera::new(
+                    world.clone(),
+                    renderer,
+                    streams,
+                    Duration::from_secs_f64(PIPELINE_FRAME_TIME_S),
+                ),
+                frames,
             );
             let pipeline = NeedlePipeline::classical(calibration, scene.needle).map_err(|e| {
                 SimError::Config {

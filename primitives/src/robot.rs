@@ -276,6 +276,15 @@ impl RobotPrimitives {
         &self.rig
     }
 
+    /// The same primitives over `f(rig)`: its arms, jaws or estimator wrapped (a recorder's
+    /// tap), before anything runs.
+    pub fn map_rig(self, f: impl FnOnce(Rig) -> Rig) -> Self {
+        Self {
+            rig: f(self.rig),
+            ..self
+        }
+    }
+
     /// A needle estimate, waiting up to [`ESTIMATE_TRIES`] estimator cycles for one; `held`
     /// says which arm holds the needle nearer which end, if one does.
     fn estimate(&mut self, held: Option<(Hand, NeedleEnd)>) -> Step<NeedleEstimate> {

@@ -2,11 +2,16 @@
 
 mod msgs;
 mod read;
+mod tap;
 mod write;
 
-pub use msgs::{CHANNELS, Channel, Event, Transition, schema_text};
+pub use msgs::{
+    CHANNELS, Channel, CompressedImage, Event, Log, MsgType, NeedleEstimate, Qos, Transition,
+    schema_text,
+};
 pub use read::{Recorded, read, recover, to_jsonl};
-pub use write::{Recorder, RecorderOptions, RunInfo, Stats};
+pub use tap::{FRAME, Tap, Truth};
+pub use write::{MAX_FRAME_QUEUE_BYTES, Recorder, RecorderOptions, RunInfo, Stats};
 
 /// What can go wrong recording or reading a run.
 #[derive(Debug, thiserror::Error)]

@@ -31,54 +31,254 @@ pub struct Transition {
     pub to_state: String,
 }
 
-const TIME_MSG: &str = "int32 sec\nuint32 nanosec\n";
+/// `stitch_msgs/msg/NeedleEstimate` (`recorder/msg/NeedleEstimate.msg`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct NeedleEstimate {
+    /// Run time when it was asked.
+    pub stamp: Time,
+    /// The step that asked (`t0 s2 insert a0`), empty outside a step.
+    pub step: String,
+    /// Where the estimator was told to look.
+    pub hint: String,
+    /// Whether there is an estimate.
+    pub ok: bool,
+    /// The needle frame in the robot frame, m (identity without an estimate).
+    pub pose: stitch_dvrk::msg::Pose,
+    /// Confidence, 0 to 1.
+    pub confidence: f64,
+    /// When its images were taken, run time.
+    pub image_stamp: Time,
+    /// The typed failure as JSON, empty when ok.
+    pub failure: String,
+}
+
+/// `rcl_interfaces/msg/Log`: what `/rosout` carries (errors, warnings, notes of a run).
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Log {
+    /// When.
+    pub stamp: Time,
+    /// [`Log::ERROR`], [`Log::WARN`], [`Log::INFO`].
+    pub level: u8,
+    /// Who: an arm (`PSM1`), `estimator`, `recorder`.
+    pub name: String,
+    /// What.
+    pub msg: String,
+    /// Source file (empty: not a source location).
+    pub file: String,
+    /// Source function (empty).
+    pub function: String,
+    /// Source line (0).
+    pub line: u32,
+}
+
+impl Log {
+    /// Information.
+    pub const INFO: u8 = 20;
+    /// A warning.
+    pub const WARN: u8 = 30;
+    /// An error.
+    pub const ERROR: u8 = 40;
+}
+
+/// `sensor_msgs/msg/CompressedImage`: a recorded camera frame (JPEG).
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CompressedImage {
+    /// Stamp and camera frame.
+    pub header: stitch_dvrk::msg::Header,
+    /// `jpeg`.
+    pub format: String,
+    /// The encoded image.
+    #[serde(with = "serde_bytes")]
+    pub data: Vec<u8>,
+}
+
+/// A message type of a recording: its ROS 2 name and `.msg` text, and the types it uses.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct MsgType {
+    /// `pkg/msg/Type`.
+    pub name: &'static str,
+    /// The `.msg` definition.
+    pub msg: &'static str,
+    /// The types its fields use, directly or not, each once.
+    pub uses: &'static [&'static MsgType],
+}
+
+/// `builtin_interfaces/msg/Time`.
+pub static TIME: MsgType = MsgType {
+    name: "builtin_interfaces/msg/Time",
+    msg: "int32 sec\nuint32 nanosec\n",
+    uses: &[],
+};
+/// `std_msgs/msg/Header`.
+pub static HEADER: MsgType = MsgType {
+    name: "std_msgs/msg/Header",
+    msg: "builtin_interfaces/Time stamp\nstring frame_id\n",
+    uses: &[&TIME],
+};
+/// `geometry_msgs/msg/Point`.
+pub static POINT: MsgType = MsgType {
+    name: "geometry_msgs/msg/Point",
+    msg: "float64 x\nfloat64 y\nfloat64 z\n",
+    uses: &[],
+};
+/// `geometry_msgs/msg/Quaternion`.
+pub static QUATERNION: MsgType = MsgType {
+    name: "geometry_msgs/msg/Quaternion",
+    msg: "float64 x 0\nfloat64 y 0\nfloat64 z 0\nfloat64 w 1\n",
+    uses: &[],
+};
+/// `geometry_msgs/msg/Pose`.
+pub static POSE: MsgType = MsgType {
+    name: "geometry_msgs/msg/Pose",
+    msg: "geometry_msgs/Point position\ngeometry_msgs/Quaternion orientation\n",
+    uses: &[&POINT, &QUATERNION],
+};
+/// `geometry_msgs/msg/PoseStamped`: poses measured, set and commanded.
+pub static POSE_STAMPED: MsgType = MsgType {
+    name: "geometry_msgs/msg/PoseStamped",
+    msg: "std_msgs/Header header\ngeometry_msgs/Pose pose\n",
+    uses: &[&HEADER, &TIME, &POSE, &POINT, &QUATERNION],
+};
+/// `sensor_msgs/msg/JointState`: jaw openings measured and commanded.
+pub static JOINT_STATE: MsgType = MsgType {
+    name: "sensor_msgs/msg/JointState",
+    msg: "std_msgs/Header header\nstring[] name\nfloat64[] position\nfloat64[] velocity\n\
+          float64[] effort\n",
+    uses: &[&HEADER, &TIME],
+};
+/// `crtk_msgs/msg/OperatingState`: an arm's state on a dVRK.
+pub static OPERATING_STATE: MsgType = MsgType {
+    name: "crtk_msgs/msg/OperatingState",
+    msg: "std_msgs/Header header\nstring state\nbool is_homed\nbool is_busy\n",
+    uses: &[&HEADER, &TIME],
+};
+/// `rcl_interfaces/msg/Log`.
+pub static LOG: MsgType = MsgType {
+    name: "rcl_interfaces/msg/Log",
+    msg: "byte DEBUG=10\nbyte INFO=20\nbyte WARN=30\nbyte ERROR=40\nbyte FATAL=50\n\
+          builtin_interfaces/Time stamp\nuint8 level\nstring name\nstring msg\nstring file\n\
+          string function\nuint32 line\n",
+    uses: &[&TIME],
+};
+/// `sensor_msgs/msg/CompressedImage`.
+pub static COMPRESSED_IMAGE: MsgType = MsgType {
+    name: "sensor_msgs/msg/CompressedImage",
+    msg: "std_msgs/Header header\nstring format\nuint8[] data\n",
+    uses: &[&HEADER, &TIME],
+};
+/// `stitch_msgs/msg/Event`.
+pub static EVENT: MsgType = MsgType {
+    name: "stitch_msgs/msg/Event",
+    msg: include_str!("../msg/Event.msg"),
+    uses: &[&TIME],
+};
+/// `stitch_msgs/msg/Transition`.
+pub static TRANSITION: MsgType = MsgType {
+    name: "stitch_msgs/msg/Transition",
+    msg: include_str!("../msg/Transition.msg"),
+    uses: &[&TIME],
+};
+/// `stitch_msgs/msg/NeedleEstimate`.
+pub static NEEDLE_ESTIMATE: MsgType = MsgType {
+    name: "stitch_msgs/msg/NeedleEstimate",
+    msg: include_str!("../msg/NeedleEstimate.msg"),
+    uses: &[&TIME, &POSE, &POINT, &QUATERNION],
+};
+
+/// How a channel is offered, in the integer form Humble writes (read by Humble, Jazzy and
+/// `rosbags`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Qos {
+    /// Reliable, keep last 1,000, transient local: the run's events, latched state.
+    Latched,
+    /// Reliable, keep last 100, volatile: telemetry, as the dVRK publishes it.
+    Stream,
+}
+
+impl Qos {
+    /// The `offered_qos_profiles` YAML.
+    pub fn yaml(self) -> String {
+        let (depth, durability) = match self {
+            Qos::Latched => (1000, 1),
+            Qos::Stream => (100, 2),
+        };
+        format!(
+            "- history: 1\n  depth: {depth}\n  reliability: 1\n  durability: {durability}\n  \
+             deadline:\n    sec: 0\n    nsec: 0\n  lifespan:\n    sec: 0\n    nsec: 0\n  \
+             liveliness: 1\n  liveliness_lease_duration:\n    sec: 0\n    nsec: 0\n  \
+             avoid_ros_namespace_conventions: false\n"
+        )
+    }
+}
 
 /// One channel of a recorded run.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Channel {
     /// Topic.
     pub topic: &'static str,
-    /// ROS 2 type, `pkg/msg/Type`.
-    pub schema: &'static str,
-    /// The type's `.msg` text.
-    pub msg: &'static str,
-    /// `offered_qos_profiles`, in the integer form Humble writes (read by Humble, Jazzy and
-    /// `rosbags`): reliable, keep last, transient local (events are latched state of a run).
-    pub qos: &'static str,
+    /// Its type.
+    pub ty: &'static MsgType,
+    /// How it is offered.
+    pub qos: Qos,
 }
 
-const EVENT_QOS: &str = "- history: 1\n  depth: 1000\n  reliability: 1\n  durability: 1\n  \
-deadline:\n    sec: 0\n    nsec: 0\n  lifespan:\n    sec: 0\n    nsec: 0\n  liveliness: 1\n  \
-liveliness_lease_duration:\n    sec: 0\n    nsec: 0\n  avoid_ros_namespace_conventions: false\n";
-
-/// Every channel a recording has, in the order they are added.
+/// The channels every recording has, first, in this order; the arms', the estimator's and
+/// the cameras' follow as their first message comes.
 pub const CHANNELS: [Channel; 2] = [
     Channel {
         topic: "/stitch/events",
-        schema: "stitch_msgs/msg/Event",
-        msg: include_str!("../msg/Event.msg"),
-        qos: EVENT_QOS,
+        ty: &EVENT,
+        qos: Qos::Latched,
     },
     Channel {
         topic: "/stitch/transitions",
-        schema: "stitch_msgs/msg/Transition",
-        msg: include_str!("../msg/Transition.msg"),
-        qos: EVENT_QOS,
+        ty: &TRANSITION,
+        qos: Qos::Latched,
     },
 ];
 
-/// The `ros2msg` schema text of `channel`'s type: its definition, then each dependency's.
-pub fn schema_text(channel: &Channel) -> String {
+/// The `ros2msg` schema text of `ty`: its definition, then each type it uses after a line of
+/// 80 `=` and `MSG: pkg/Type`, as ROS 2 writes them.
+pub fn schema_text(ty: &MsgType) -> String {
     let rule = "=".repeat(80);
-    format!(
-        "{}\n{rule}\nMSG: builtin_interfaces/Time\n{TIME_MSG}",
-        channel.msg.trim_end()
-    )
+    let mut out = ty.msg.trim_end().to_string();
+    out.push('\n');
+    for dep in ty.uses {
+        out.push_str(&format!(
+            "{rule}\nMSG: {}\n{}",
+            dep.name.replacen("/msg/", "/", 1),
+            dep.msg
+        ));
+    }
+    out
+}
+
+/// A pose as its ROS message.
+pub fn pose_msg(p: &stitch_robot::Pose) -> stitch_dvrk::msg::Pose {
+    let t = p.translation.vector;
+    let q = p.rotation.quaternion();
+    stitch_dvrk::msg::Pose {
+        position: stitch_dvrk::msg::Point {
+            x: t.x,
+            y: t.y,
+            z: t.z,
+        },
+        orientation: stitch_dvrk::msg::Quaternion {
+            x: q.i,
+            y: q.j,
+            z: q.k,
+            w: q.w,
+        },
+    }
 }
 
 /// A run time, s, as a ROS stamp (run times are never negative).
 pub(crate) fn stamp(t_s: f64) -> Time {
-    let ns = nanos(t_s);
+    stamp_ns(nanos(t_s))
+}
+
+/// A run time, ns, as a ROS stamp.
+pub(crate) fn stamp_ns(ns: u64) -> Time {
     Time {
         sec: i32::try_from(ns / 1_000_000_000).unwrap_or(i32::MAX),
         nanosec: (ns % 1_000_000_000) as u32,

@@ -2,15 +2,51 @@
 //! queue.
 
 use crate::RecorderError;
-use crate::msgs::{CHANNELS, Event, Transition, nanos, schema_text, stamp};
+use crate::msgs::{
+    CHANNELS, COMPRESSED_IMAGE, CompressedImage, Event, Log, MsgType, Qos, Transition, nanos,
+    schema_text, stamp,
+};
+use crate::tap::{Shared, Tap};
 use mcap::records::{MessageHeader, Metadata};
 use sha2::{Digest, Sha256};
 use std::collections::BTreeMap;
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
-use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender, channel};
+use std::sync::atomic::Ordering;
+use std::sync::mpsc::{Receiver, RecvTimeoutError, channel};
+use std::sync::{Arc, PoisonError};
 use std::time::{Duration, Instant};
 use stitch_engine::{Entry, JournalSink as Sink, Record};
+use stitch_robot::Clock;
+
+/// What goes to the writer thread, in the order it is to be written.
+#[derive(Debug)]
+pub(crate) enum Item {
+    /// An engine event.
+    Record(Record),
+    /// A message already encoded: telemetry, an estimate, a log line, a frame.
+    Message {
+        /// Topic.
+        topic: String,
+        /// Its type.
+        ty: &'static MsgType,
+        /// How it is offered.
+        qos: Qos,
+        /// Log time, ns of run time.
+        t_ns: u64,
+        /// CDR bytes.
+        bytes: Vec<u8>,
+    },
+    /// A stereo pair to encode (JPEG) and write, taken at `t_ns`.
+    Frame {
+        /// Run time, ns.
+        t_ns: u64,
+        /// Left and right views.
+        views: Box<[stitch_robot::RgbImage; 2]>,
+    },
+    /// The run is over: write what is left and the summary.
+    End,
+}
 
 /// A chunk is closed at least this often, in run time (and in wall time on a robot): what a
 /// crash can lose.
@@ -40,13 +76,30 @@ pub struct RecorderOptions {
     /// on a robot, whose records come in real time). Off on the mock: there, chunks close at
     /// points of simulated time only, so the same seed gives the same bytes.
     pub wall_flush: bool,
+    /// Camera frames waiting for the writer may hold at most this many bytes; a frame that
+    /// would pass it is dropped, counted and said (events and telemetry are never dropped).
+    /// 0: the default, [`MAX_FRAME_QUEUE_BYTES`].
+    pub max_frame_queue_bytes: usize,
+    /// Record a stereo pair from the camera at most this often, in run time (`None`: no
+    /// frames). Only runs whose estimator looks at images have frames.
+    pub frame_period: Option<Duration>,
 }
+
+/// The default bound on camera frames waiting for the writer to encode them, bytes (raw
+/// RGB: eight pairs of 1280×960 views).
+pub const MAX_FRAME_QUEUE_BYTES: usize = 64 << 20;
 
 /// What a finished recording held.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Stats {
     /// Engine events recorded.
     pub events: u64,
+    /// Other messages recorded (telemetry, estimates, logs, frames).
+    pub messages: u64,
+    /// Camera frames recorded.
+    pub frames: u64,
+    /// Camera frames dropped because the writer was behind (never events nor telemetry).
+    pub frames_dropped: u64,
     /// Chunks closed.
     pub chunks: u64,
 }
@@ -56,7 +109,7 @@ pub struct Stats {
 /// its last closed chunk (`stitch journal recover`).
 #[derive(Debug)]
 pub struct Recorder {
-    tx: Option<Sender<Record>>,
+    shared: Arc<Shared>,
     thread: Option<std::thread::JoinHandle<Result<Stats, RecorderError>>>,
     path: PathBuf,
 }
@@ -106,6 +159,13 @@ impl Recorder {
             info.seed.map(|s| s.to_string()).unwrap_or_default(),
         );
         meta.insert("robot".to_string(), info.robot.clone());
+        meta.insert(
+            "frame_period_s".to_string(),
+            options
+                .frame_period
+                .map(|p| p.as_secs_f64().to_string())
+                .unwrap_or_default(),
+        );
         w.write_metadata(&Metadata {
             name: "stitch_run".into(),
             metadata: meta,
@@ -124,14 +184,9 @@ impl Recorder {
         if let Some(config) = &info.mock_config {
             attach("mock.toml", "application/toml", config).map_err(&err)?;
         }
-        let mut ids = Vec::new();
+        let mut channels = Channels::default();
         for c in &CHANNELS {
-            let schema = w
-                .add_schema(c.schema, "ros2msg", schema_text(c).as_bytes())
-                .map_err(&err)?;
-            let mut m = BTreeMap::new();
-            m.insert("offered_qos_profiles".to_string(), c.qos.to_string());
-            ids.push(w.add_channel(schema, c.topic, "cdr", &m).map_err(&err)?);
+            channels.id(&mut w, c.topic, c.ty, c.qos).map_err(&err)?;
         }
         w.flush().map_err(&err)?;
         // Events are never dropped and the engine never waits on the disk, so their queue is
@@ -139,30 +194,57 @@ impl Recorder {
         // allocated up front (4,096 records: perf stat's task-clock for a mock mission went
         // from 6.5 to 6.1 ms without them).
         let (tx, rx) = channel();
+        let shared = Arc::new(Shared::new(tx, options));
         let owned = path.to_path_buf();
+        let for_writer = Arc::clone(&shared);
         let thread = std::thread::Builder::new()
             .name("recorder".into())
-            .spawn(move || write_loop(w, &ids, &rx, &owned, options))
+            .spawn(move || write_loop(w, channels, &rx, &owned, options, &for_writer))
             .map_err(|source| RecorderError::Io {
                 path: path.display().to_string(),
                 source,
             })?;
         Ok(Self {
-            tx: Some(tx),
+            shared,
             thread: Some(thread),
             path: path.to_path_buf(),
         })
     }
 
     /// The journal's sink: each record is queued for the writer, never waited on. Once the
-    /// writer has failed, records are no longer kept; `finish` says why.
+    /// writer has failed, records are no longer kept; `finish` says why. It also tells the
+    /// taps which step is running (the step an estimate was asked for).
     pub fn sink(&self) -> Sink {
-        let tx = self.tx.clone();
+        let shared = Arc::clone(&self.shared);
         Box::new(move |r: &Record| {
-            if let Some(tx) = &tx {
-                let _ = tx.send(r.clone());
+            match &r.entry {
+                Entry::StepStart {
+                    throw,
+                    step,
+                    primitive,
+                    attempt,
+                } => {
+                    *shared.step.lock().unwrap_or_else(PoisonError::into_inner) =
+                        format!("t{throw} s{step} {primitive} a{attempt}");
+                }
+                Entry::StepEnd { .. } => {
+                    shared
+                        .step
+                        .lock()
+                        .unwrap_or_else(PoisonError::into_inner)
+                        .clear();
+                }
+                _ => {}
             }
+            shared.send(Item::Record(r.clone()));
         })
+    }
+
+    /// A tap on the robot, stamping with `clock` (the run's): wraps arms, jaws, the
+    /// estimator and cameras so what they measure and are told is recorded, and samples a
+    /// real robot's state.
+    pub fn tap(&self, clock: Arc<dyn Clock>) -> Tap {
+        Tap::new(Arc::clone(&self.shared), clock)
     }
 
     /// The file being written.
@@ -173,7 +255,7 @@ impl Recorder {
     /// Close the queue, let the writer write what is left and the summary, and say what it
     /// recorded. Every sink must be gone (the journal drops its own when the run ends).
     pub fn finish(mut self) -> Result<Stats, RecorderError> {
-        self.tx = None;
+        self.shared.end();
         match self.thread.take().map(std::thread::JoinHandle::join) {
             Some(Ok(r)) => r,
             Some(Err(_)) => Err(RecorderError::Stopped("the writer thread panicked".into())),
@@ -186,11 +268,44 @@ impl Drop for Recorder {
     fn drop(&mut self) {
         // Not finished (an error path): the writer still writes what it has and closes the
         // file; its result has nobody to go to.
-        self.tx = None;
+        self.shared.end();
         if let Some(t) = self.thread.take() {
             let _ = t.join();
         }
     }
+}
+
+/// Where a recorded stereo pair's views go.
+pub const FRAME_TOPICS: [&str; 2] = [
+    "/stitch/camera/left/image/compressed",
+    "/stitch/camera/right/image/compressed",
+];
+
+/// JPEG quality of recorded frames (a rendered 1280×960 view: ~0.2 MB; as PNG, ~2 MB and
+/// four times the encoding time).
+pub const JPEG_QUALITY: u8 = 90;
+
+/// `view` as JPEG (deterministic: the same pixels, the same bytes).
+fn jpeg(view: &stitch_robot::RgbImage) -> Result<Vec<u8>, String> {
+    let expected = view.width as usize * view.height as usize * 3;
+    if view.data.len() != expected {
+        return Err(format!(
+            "{}×{} with {} bytes",
+            view.width,
+            view.height,
+            view.data.len()
+        ));
+    }
+    let mut out = Vec::new();
+    image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, JPEG_QUALITY)
+        .encode(
+            &view.data,
+            view.width,
+            view.height,
+            image::ExtendedColorType::Rgb8,
+        )
+        .map_err(|e| e.to_string())?;
+    Ok(out)
 }
 
 fn hex(bytes: &[u8]) -> String {
@@ -208,12 +323,49 @@ fn event_name(entry: &Entry) -> String {
     }
 }
 
+/// Channel and schema ids by topic and type name, added as their first message comes.
+#[derive(Debug, Default)]
+struct Channels {
+    schemas: BTreeMap<&'static str, u16>,
+    channels: BTreeMap<String, (u16, u32)>,
+}
+
+impl Channels {
+    /// The channel of `topic` (added, with its schema, if new), and its next sequence number.
+    fn id(
+        &mut self,
+        w: &mut McapWriter,
+        topic: &str,
+        ty: &'static MsgType,
+        qos: Qos,
+    ) -> Result<(u16, u32), mcap::McapError> {
+        if let Some((id, seq)) = self.channels.get_mut(topic) {
+            *seq += 1;
+            return Ok((*id, *seq - 1));
+        }
+        let schema = match self.schemas.get(ty.name) {
+            Some(s) => *s,
+            None => {
+                let s = w.add_schema(ty.name, "ros2msg", schema_text(ty).as_bytes())?;
+                self.schemas.insert(ty.name, s);
+                s
+            }
+        };
+        let mut m = BTreeMap::new();
+        m.insert("offered_qos_profiles".to_string(), qos.yaml());
+        let id = w.add_channel(schema, topic, "cdr", &m)?;
+        self.channels.insert(topic.to_string(), (id, 1));
+        Ok((id, 0))
+    }
+}
+
 fn write_loop(
     mut w: McapWriter,
-    ids: &[u16],
-    rx: &Receiver<Record>,
+    mut channels: Channels,
+    rx: &Receiver<Item>,
     path: &Path,
     options: RecorderOptions,
+    shared: &Shared,
 ) -> Result<Stats, RecorderError> {
     let err = mcap_err(path);
     let message = |why: String| RecorderError::Message {
@@ -224,7 +376,26 @@ fn write_loop(
     let flush_ns = FLUSH_EVERY.as_nanos() as u64;
     let (mut flushed_ns, mut dirty) = (0u64, false);
     let mut wall = Instant::now();
-    let mut sequence = [0u32; 2];
+    let mut last_t = 0u64;
+    let mut said_dropped = 0u64;
+    let mut put = |w: &mut McapWriter,
+                   topic: &str,
+                   ty: &'static MsgType,
+                   qos: Qos,
+                   t: u64,
+                   bytes: &[u8]|
+     -> Result<(), mcap::McapError> {
+        let (channel_id, sequence) = channels.id(w, topic, ty, qos)?;
+        w.write_to_known_channel(
+            &MessageHeader {
+                channel_id,
+                sequence,
+                log_time: t,
+                publish_time: t,
+            },
+            bytes,
+        )
+    };
     loop {
         let next = if options.wall_flush {
             match rx.recv_timeout(FLUSH_EVERY.saturating_sub(wall.elapsed())) {
@@ -238,7 +409,7 @@ fn write_loop(
                 Err(_) => break,
             }
         };
-        let Some(r) = next else {
+        let Some(item) = next else {
             if dirty {
                 w.flush().map_err(&err)?;
                 stats.chunks += 1;
@@ -247,66 +418,145 @@ fn write_loop(
             wall = Instant::now();
             continue;
         };
-        let t = nanos(r.t_s);
-        let json =
-            serde_json::to_string(&r).map_err(|e| message(format!("record {}: {e}", r.seq)))?;
-        let event = Event {
-            stamp: stamp(r.t_s),
-            seq: r.seq,
-            event: event_name(&r.entry),
-            record_json: json,
-        };
-        let bytes = stitch_dvrk::encode(&event, "stitch_msgs/msg/Event")
-            .map_err(|e| message(e.to_string()))?;
-        w.write_to_known_channel(
-            &MessageHeader {
-                channel_id: ids[0],
-                sequence: sequence[0],
-                log_time: t,
-                publish_time: t,
-            },
-            &bytes,
-        )
-        .map_err(&err)?;
-        sequence[0] += 1;
-        stats.events += 1;
-        dirty = true;
-        let transition = if let Entry::Transition { from, to } = &r.entry {
-            let bytes = stitch_dvrk::encode(
-                &Transition {
-                    stamp: stamp(r.t_s),
-                    seq: r.seq,
-                    from_state: from.clone(),
-                    to_state: to.clone(),
-                },
-                "stitch_msgs/msg/Transition",
-            )
-            .map_err(|e| message(e.to_string()))?;
-            w.write_to_known_channel(
-                &MessageHeader {
-                    channel_id: ids[1],
-                    sequence: sequence[1],
-                    log_time: t,
-                    publish_time: t,
-                },
+        // Frames dropped since the last word about it: said on /rosout (at most once per
+        // chunk), counted in the summary's metadata.
+        let dropped = shared.frames_dropped.load(Ordering::Relaxed);
+        if dropped > said_dropped {
+            let log = Log {
+                stamp: crate::msgs::stamp_ns(last_t),
+                level: Log::WARN,
+                name: "recorder".into(),
+                msg: format!(
+                    "{} camera frame(s) dropped: the writer was behind ({} in all)",
+                    dropped - said_dropped,
+                    dropped
+                ),
+                file: String::new(),
+                function: String::new(),
+                line: 0,
+            };
+            let bytes = stitch_dvrk::encode(&log, crate::msgs::LOG.name)
+                .map_err(|e| message(e.to_string()))?;
+            put(
+                &mut w,
+                "/rosout",
+                &crate::msgs::LOG,
+                Qos::Stream,
+                last_t,
                 &bytes,
             )
             .map_err(&err)?;
-            sequence[1] += 1;
-            true
-        } else {
-            false
+            said_dropped = dropped;
+        }
+        let (t, transition, end) = match item {
+            Item::End => break,
+            Item::Frame { t_ns, views } => {
+                let size = views[0].data.len() + views[1].data.len();
+                for (view, topic) in views.iter().zip(FRAME_TOPICS) {
+                    let msg = CompressedImage {
+                        header: stitch_dvrk::msg::Header {
+                            stamp: crate::msgs::stamp_ns(t_ns),
+                            frame_id: "camera_left".into(),
+                        },
+                        format: "jpeg".into(),
+                        data: jpeg(view).map_err(|e| message(format!("{topic}: JPEG: {e}")))?,
+                    };
+                    let bytes = stitch_dvrk::encode(&msg, COMPRESSED_IMAGE.name)
+                        .map_err(|e| message(e.to_string()))?;
+                    put(&mut w, topic, &COMPRESSED_IMAGE, Qos::Stream, t_ns, &bytes)
+                        .map_err(&err)?;
+                    stats.messages += 1;
+                }
+                shared.frame_written(size);
+                stats.frames += 1;
+                (t_ns, false, false)
+            }
+            Item::Message {
+                topic,
+                ty,
+                qos,
+                t_ns,
+                bytes,
+            } => {
+                put(&mut w, &topic, ty, qos, t_ns, &bytes).map_err(&err)?;
+                stats.messages += 1;
+                (t_ns, false, false)
+            }
+            Item::Record(r) => {
+                let t = nanos(r.t_s);
+                let json = serde_json::to_string(&r)
+                    .map_err(|e| message(format!("record {}: {e}", r.seq)))?;
+                let event = Event {
+                    stamp: stamp(r.t_s),
+                    seq: r.seq,
+                    event: event_name(&r.entry),
+                    record_json: json,
+                };
+                let bytes = stitch_dvrk::encode(&event, crate::msgs::EVENT.name)
+                    .map_err(|e| message(e.to_string()))?;
+                put(
+                    &mut w,
+                    CHANNELS[0].topic,
+                    CHANNELS[0].ty,
+                    CHANNELS[0].qos,
+                    t,
+                    &bytes,
+                )
+                .map_err(&err)?;
+                stats.events += 1;
+                let transition = if let Entry::Transition { from, to } = &r.entry {
+                    let bytes = stitch_dvrk::encode(
+                        &Transition {
+                            stamp: stamp(r.t_s),
+                            seq: r.seq,
+                            from_state: from.clone(),
+                            to_state: to.clone(),
+                        },
+                        crate::msgs::TRANSITION.name,
+                    )
+                    .map_err(|e| message(e.to_string()))?;
+                    put(
+                        &mut w,
+                        CHANNELS[1].topic,
+                        CHANNELS[1].ty,
+                        CHANNELS[1].qos,
+                        t,
+                        &bytes,
+                    )
+                    .map_err(&err)?;
+                    true
+                } else {
+                    false
+                };
+                (t, transition, matches!(r.entry, Entry::Finished { .. }))
+            }
         };
+        last_t = last_t.max(t);
+        dirty = true;
         let wall_due = options.wall_flush && wall.elapsed() >= FLUSH_EVERY;
-        let end = matches!(r.entry, Entry::Finished { .. });
         if transition || end || wall_due || t >= flushed_ns + flush_ns {
             w.flush().map_err(&err)?;
             stats.chunks += 1;
-            flushed_ns = t;
+            flushed_ns = flushed_ns.max(t);
             dirty = false;
             wall = Instant::now();
         }
     }
+    stats.frames_dropped = shared.frames_dropped.load(Ordering::Relaxed);
+    let mut summary = BTreeMap::new();
+    for (k, v) in [
+        ("events", stats.events),
+        ("messages", stats.messages),
+        ("frames", stats.frames),
+        ("frames_dropped", stats.frames_dropped),
+    ] {
+        summary.insert(k.to_string(), v.to_string());
+    }
+    w.write_metadata(&Metadata {
+        name: "stitch_recording".into(),
+        metadata: summary,
+    })
+    .map_err(&err)?;
     w.finish().map_err(&err)?;
     Ok(stats)
 }

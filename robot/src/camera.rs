@@ -124,6 +124,44 @@ macro_rules! forward_camera {
 }
 forward_camera!(std::sync::Arc<T>, Box<T>, &T);
 
+/// Something shown every frame a camera captures (a recorder's tap).
+pub type FrameObserver = std::sync::Arc<dyn Fn(&StereoFrame) + Send + Sync>;
+
+/// `C`, showing every frame it captures to an observer, if it has one.
+pub struct ObservedCamera<C> {
+    camera: C,
+    observer: Option<FrameObserver>,
+}
+
+impl<C> ObservedCamera<C> {
+    /// `camera`, observed by `observer` (none: the camera as it is).
+    pub fn new(camera: C, observer: Option<FrameObserver>) -> Self {
+        Self { camera, observer }
+    }
+}
+
+impl<C: std::fmt::Debug> std::fmt::Debug for ObservedCamera<C> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ObservedCamera")
+            .field("camera", &self.camera)
+            .field("observed", &self.observer.is_some())
+            .finish()
+    }
+}
+
+impl<C: StereoCamera> StereoCamera for ObservedCamera<C> {
+    fn calibration(&self) -> &StereoCalibration {
+        self.camera.calibration()
+    }
+    fn capture(&self) -> Result<StereoFrame, RobotError> {
+        let frame = self.camera.capture()?;
+        if let Some(observe) = &self.observer {
+            observe(&frame);
+        }
+        Ok(frame)
+    }
+}
+
 /// A camera that returns black frames of its calibration's size, counting captures.
 #[derive(Debug)]
 pub struct DummyCamera {

@@ -12,7 +12,10 @@ mod wound;
 pub use nalgebra;
 
 pub use arm::{Arm, ArmCommand, DummyArm, MotionTracker, MoveHandle, SpeedLimits};
-pub use camera::{DummyCamera, RgbImage, StereoCalibration, StereoCamera, StereoFrame};
+pub use camera::{
+    DummyCamera, FrameObserver, ObservedCamera, RgbImage, StereoCalibration, StereoCamera,
+    StereoFrame,
+};
 pub use clock::{Clock, SimClock, WallClock};
 pub use error::RobotError;
 pub use jaw::{DummyJaw, JAW_CLOSED_RAD, JAW_OPEN_RAD, Jaw};

@@ -22,6 +22,13 @@ def with_mcap(path):
             assert "offered_qos_profiles" in channel.metadata, channel
             if channel.topic == "/stitch/events":
                 json.loads(decoded.record_json)  # the record inside is JSON
+            if schema.name == "sensor_msgs/msg/CompressedImage":
+                assert decoded.format == "jpeg", decoded.format
+                assert bytes(decoded.data[:2]) == b"\xff\xd8", "a JPEG"
+            if schema.name == "geometry_msgs/msg/PoseStamped":
+                q = decoded.pose.orientation
+                norm = q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w
+                assert abs(norm - 1) < 1e-9, f"{channel.topic}: |q|² = {norm}"
             counts[channel.topic] = counts.get(channel.topic, 0) + 1
         summary = reader.get_summary()
         names = [a.name for a in reader.iter_attachments()]
