@@ -7,6 +7,7 @@ mod mock;
 mod perceive;
 mod plot;
 mod record;
+mod replay;
 #[cfg(feature = "ros2")]
 mod ros2;
 mod show;
@@ -52,7 +53,8 @@ const EXIT_CODES: &str = "Exit codes:
   3  the plan is invalid (script, unit, range, order or budget error); nothing ran
   4  the mission failed with one of the paper's error classes (I, E, H, T)
   5  the mission was aborted by the supervisor
-  6  perceive: the pipeline gave a typed failure instead of a result";
+  6  perceive: the pipeline gave a typed failure instead of a result
+  7  replay: the run diverged from its recording";
 
 /// Autonomous suturing missions on the dVRK, under a surgeon's supervision.
 #[derive(Debug, Parser)]
@@ -159,11 +161,16 @@ enum Command {
     /// for `stitch run --robot ros2` on one machine (see docs/dvrk.md). Runs until killed.
     #[cfg(feature = "ros2")]
     SimNode(ros2::SimNodeArgs),
-    /// Recorded runs (`stitch run --journal FILE.mcap`): export, recover (see docs/journal.md).
+    /// Recorded runs (`stitch run --journal FILE.mcap`): show, export, recover (see
+    /// docs/journal.md).
     Journal {
         #[command(subcommand)]
         command: record::JournalCommand,
     },
+    /// Run a recorded mock or scripted run again from its own recorded plan, configuration
+    /// and seed, and say "identical" or where it first diverges (see docs/journal.md).
+    #[command(after_help = EXIT_CODES)]
+    Replay(replay::ReplayArgs),
     /// Benchmarks: `stitch bench perception`, `stitch bench ros2`.
     Bench {
         #[command(subcommand)]
@@ -175,9 +182,9 @@ enum Command {
 #[derive(Debug, Default, serde::Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub(crate) struct MockConfig {
-    scene: SceneConfig,
-    sensing: SensingConfig,
-    camera: CameraConfig,
+    pub(crate) scene: SceneConfig,
+    pub(crate) sensing: SensingConfig,
+    pub(crate) camera: CameraConfig,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -190,6 +197,35 @@ pub(crate) enum PerceptionKind {
     Pipeline,
     /// The noise model fitted to the stereo pipeline's measured errors (fast).
     Fitted,
+}
+
+impl PerceptionKind {
+    /// Its name on the command line.
+    pub(crate) fn name(self) -> &'static str {
+        match self {
+            Self::Model => "model",
+            Self::Perfect => "perfect",
+            Self::Pipeline => "pipeline",
+            Self::Fitted => "fitted",
+        }
+    }
+
+    /// By its name on the command line.
+    pub(crate) fn named(name: &str) -> Option<Self> {
+        [Self::Model, Self::Perfect, Self::Pipeline, Self::Fitted]
+            .into_iter()
+            .find(|k| k.name() == name)
+    }
+
+    /// The mock's perception of this kind, configured by `mock`.
+    pub(crate) fn of(self, mock: &MockConfig) -> MockPerception {
+        match self {
+            Self::Model => MockPerception::Model(mock.sensing),
+            Self::Perfect => MockPerception::Model(SensingConfig::perfect()),
+            Self::Pipeline => MockPerception::Pipeline(Box::new(mock.camera.clone())),
+            Self::Fitted => MockPerception::Model(SensingConfig::fitted_to_pipeline()),
+        }
+    }
 }
 
 #[derive(Debug, clap::Args)]
@@ -218,7 +254,7 @@ impl WoundArgs {
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
-enum RobotKind {
+pub(crate) enum RobotKind {
     /// The embedded mock dVRK: two kinematic PSMs, the needle, the tissue phantom, the
     /// thread, perception noise and injected faults, all seeded.
     Mock,
@@ -228,6 +264,17 @@ enum RobotKind {
     /// A dVRK over ROS 2 (CRTK topics): `stitch sim-node` on this or another machine (see
     /// docs/dvrk.md).
     Ros2,
+}
+
+impl RobotKind {
+    /// Its name on the command line.
+    pub(crate) fn name(self) -> &'static str {
+        match self {
+            Self::Mock => "mock",
+            Self::Scripted => "scripted",
+            Self::Ros2 => "ros2",
+        }
+    }
 }
 
 fn main() -> ExitCode {
@@ -251,6 +298,7 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
         },
         Command::Trials(args) => trials::trials(args),
         Command::Journal { command } => record::journal(command),
+        Command::Replay(args) => replay::replay(&args),
         #[cfg(feature = "ros2")]
         Command::SimNode(args) => ros2::sim_node(args),
         Command::Check {
@@ -364,19 +412,25 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
                 anyhow::bail!("--dvrk-config, --domain-id and --no-simulator are for --robot ros2");
             }
             let recorder = match journal.as_deref().filter(|p| is_mcap(p)) {
-                Some(path) => Some(record::start(
-                    path,
-                    &plan,
-                    (outcomes.is_none()).then_some(seed),
-                    match robot {
-                        RobotKind::Mock => "mock",
-                        RobotKind::Scripted => "scripted",
-                        RobotKind::Ros2 => "ros2",
-                    },
-                    mock_config.as_deref(),
-                    robot == RobotKind::Ros2,
-                    record_frames,
-                )?),
+                Some(path) => {
+                    let info = record::run_info(&record::RunSettings {
+                        plan: &plan,
+                        seed: (outcomes.is_none()).then_some(seed),
+                        robot: robot.name(),
+                        mock_config: mock_config.as_deref(),
+                        outcomes: outcomes.as_deref(),
+                        perception: perception.name(),
+                        wound: &spec,
+                        loaded: &loaded,
+                        frames_hz: record_frames,
+                    })?;
+                    Some(record::start(
+                        path,
+                        &info,
+                        robot == RobotKind::Ros2,
+                        record_frames,
+                    )?)
+                }
                 None if record_frames != 0.0 => {
                     anyhow::bail!(
                         "--record-frames records into an MCAP journal: add --journal FILE.mcap"
@@ -386,16 +440,12 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
             };
             let rec = recorder.as_ref();
             let report = match robot {
-                RobotKind::Scripted => run_scripted(&loaded, seed, outcomes.as_deref(), rec)?,
+                RobotKind::Scripted => {
+                    let schedule = outcomes.as_deref().map(OutcomeSchedule::read).transpose()?;
+                    run_scripted(&loaded, seed, schedule, rec)?
+                }
                 RobotKind::Ros2 | RobotKind::Mock => {
-                    let perception = match perception {
-                        PerceptionKind::Model => MockPerception::Model(mock.sensing),
-                        PerceptionKind::Perfect => MockPerception::Model(SensingConfig::perfect()),
-                        PerceptionKind::Pipeline => MockPerception::Pipeline(Box::new(mock.camera)),
-                        PerceptionKind::Fitted => {
-                            MockPerception::Model(SensingConfig::fitted_to_pipeline())
-                        }
-                    };
+                    let perception = perception.of(&mock);
                     if robot == RobotKind::Ros2 {
                         let on = Ros2Run {
                             recorder: rec,
@@ -464,7 +514,7 @@ pub(crate) fn read_mock_config(path: Option<&Path>) -> anyhow::Result<MockConfig
         .with_context(|| format!("invalid mock configuration {}", path.display()))
 }
 
-fn robot_name(robot: RobotKind) -> &'static str {
+pub(crate) fn robot_name(robot: RobotKind) -> &'static str {
     match robot {
         RobotKind::Mock => "the mock dVRK",
         RobotKind::Scripted => "the scripted robot",
@@ -565,7 +615,7 @@ fn evaluate(path: &Path, spec: &WoundSpec) -> anyhow::Result<(Option<Loaded>, Op
     Ok((Some(loaded), errors))
 }
 
-fn run_mock(
+pub(crate) fn run_mock(
     loaded: &Loaded,
     scene: &SceneConfig,
     perception: MockPerception,
@@ -600,23 +650,24 @@ fn run_mock(
     .run())
 }
 
-fn run_scripted(
+pub(crate) fn run_scripted(
     loaded: &Loaded,
     seed: u64,
-    outcomes: Option<&Path>,
+    outcomes: Option<OutcomeSchedule>,
     recorder: Option<&Recorder>,
 ) -> anyhow::Result<Report> {
     let clock = SimClock::new();
     let plan = Arc::new(loaded.plan.clone());
+    let replaying = outcomes.is_some();
     let (mut primitives, mut supervisor) = match outcomes {
-        Some(path) => OutcomeSchedule::read(path)?.into_parts(clock.clone()),
+        Some(schedule) => schedule.into_parts(clock.clone()),
         None => (
             ScriptedPrimitives::seeded(seed, OutcomeModel::default(), clock.clone()),
             // Stands in for the supervising surgeon: no commands; interventions recover.
             ScriptedSupervisor::default(),
         ),
     };
-    let seed = outcomes.is_none().then_some(seed);
+    let seed = (!replaying).then_some(seed);
     Ok(Runner::new(
         plan,
         &mut primitives,

@@ -3,8 +3,12 @@
 //! such files, finished or not.
 
 use anyhow::Context;
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+use std::time::Duration;
+use stitch_engine::Loaded;
 use stitch_recorder::{Recorder, RecorderOptions, RunInfo};
+use stitch_robot::WoundSpec;
 
 /// Whether `path` names an MCAP journal (by its extension).
 pub fn is_mcap(path: &Path) -> bool {
@@ -12,41 +16,89 @@ pub fn is_mcap(path: &Path) -> bool {
         .is_some_and(|e| e.eq_ignore_ascii_case("mcap"))
 }
 
-/// Start recording the run of `plan` to `path`: its metadata and attachments are on disk
-/// before anything moves.
+/// What decides a run, to be recorded with it (and replayed from it).
+#[derive(Debug)]
+pub struct RunSettings<'a> {
+    /// The plan script.
+    pub plan: &'a Path,
+    /// The seed, where it decides the run.
+    pub seed: Option<u64>,
+    /// `mock`, `scripted`, `ros2`.
+    pub robot: &'static str,
+    /// The mock configuration file, if given.
+    pub mock_config: Option<&'a Path>,
+    /// The outcome schedule replayed, if any.
+    pub outcomes: Option<&'a Path>,
+    /// `--perception`.
+    pub perception: &'static str,
+    /// The wound the plan was evaluated against.
+    pub wound: &'a WoundSpec,
+    /// The plan as evaluated.
+    pub loaded: &'a Loaded,
+    /// `--record-frames`, Hz.
+    pub frames_hz: f64,
+}
+
+/// The metadata and attachments a recording of this run begins with.
+pub fn run_info(s: &RunSettings<'_>) -> anyhow::Result<RunInfo> {
+    let read = |p: &Path| {
+        std::fs::read_to_string(p).with_context(|| format!("cannot read {}", p.display()))
+    };
+    let mut settings = BTreeMap::new();
+    settings.insert("perception".to_string(), s.perception.to_string());
+    settings.insert("wound".to_string(), serde_json::to_string(s.wound)?);
+    settings.insert(
+        "steps_per_throw".to_string(),
+        s.loaded
+            .plan
+            .throws
+            .iter()
+            .map(|t| t.steps.len().to_string())
+            .collect::<Vec<_>>()
+            .join(","),
+    );
+    settings.insert("record_frames_hz".to_string(), s.frames_hz.to_string());
+    let mut files = Vec::new();
+    if let Some(p) = s.outcomes {
+        files.push((
+            OUTCOMES.to_string(),
+            "application/json".to_string(),
+            read(p)?,
+        ));
+    }
+    Ok(RunInfo {
+        program: format!("stitch {}", env!("CARGO_PKG_VERSION")),
+        plan_file: s.plan.display().to_string(),
+        plan_text: read(s.plan)?,
+        seed: s.seed,
+        robot: s.robot.into(),
+        mock_config: s.mock_config.map(read).transpose()?,
+        settings,
+        files,
+    })
+}
+
+/// The attachment an outcome schedule is recorded as.
+pub const OUTCOMES: &str = "outcomes.json";
+
+/// Start recording a run to `path`: its metadata and attachments are on disk before
+/// anything moves.
 pub fn start(
     path: &Path,
-    plan: &Path,
-    seed: Option<u64>,
-    robot: &str,
-    mock_config: Option<&Path>,
+    info: &RunInfo,
     real_time: bool,
     frames_hz: f64,
 ) -> anyhow::Result<Recorder> {
     if !(frames_hz.is_finite() && frames_hz >= 0.0) {
         anyhow::bail!("--record-frames {frames_hz}: expected a rate ≥ 0 Hz (0: no frames)");
     }
-    let plan_text =
-        std::fs::read_to_string(plan).with_context(|| format!("cannot read {}", plan.display()))?;
-    let mock_config = mock_config
-        .map(|p| std::fs::read_to_string(p).with_context(|| format!("cannot read {}", p.display())))
-        .transpose()?;
-    let info = RunInfo {
-        program: format!("stitch {}", env!("CARGO_PKG_VERSION")),
-        plan_file: plan.display().to_string(),
-        plan_text,
-        seed,
-        robot: robot.into(),
-        mock_config,
-    };
     Recorder::create(
         path,
-        &info,
+        info,
         RecorderOptions {
             wall_flush: real_time,
             max_frame_queue_bytes: 0,
-            frame_period: (frames_hz > 0.0)
-                .then(|| std::time::Duration::from_secs_f64(1.0 / frames_hz)),
+            frame_period: (frames_hz > 0.0).then(|| Duration::from_secs_f64(1.0 / frames_hz)),
         },
     )
     .with_context(|| format!("cannot record the journal to {}", path.display()))
@@ -64,6 +116,15 @@ pub fn finish(recorder: Recorder) -> anyhow::Result<()> {
 /// `stitch journal`.
 #[derive(Debug, clap::Subcommand)]
 pub enum JournalCommand {
+    /// The per-throw timeline of a recorded run, as `stitch run` printed it, from a finished
+    /// or an unfinished file.
+    Show {
+        /// The recording (MCAP).
+        file: PathBuf,
+        /// The rebuilt run as JSON (plan, throws with every attempt, outcome) instead.
+        #[arg(long)]
+        json: bool,
+    },
     /// Write a recorded run's journal as JSON Lines (the records `--journal FILE.jsonl`
     /// writes), from a finished or an unfinished file.
     Export {
@@ -90,6 +151,7 @@ pub enum JournalCommand {
 /// Run a `stitch journal` command.
 pub fn journal(command: JournalCommand) -> anyhow::Result<u8> {
     match command {
+        JournalCommand::Show { file, json } => crate::replay::show(&file, json),
         JournalCommand::Export { file, out, .. } => {
             let got = stitch_recorder::read(&file)?;
             if !got.complete {

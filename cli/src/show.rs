@@ -1,7 +1,9 @@
 //! Text views of plans and runs.
 
 use std::fmt::Write;
-use stitch_engine::{InterventionResult, Plan, Report, RunOutcome, caps, retry_cap};
+use stitch_engine::{
+    InterventionResult, Plan, PlanHeader, Rebuilt, Report, RunOutcome, caps, retry_cap,
+};
 use stitch_primitives::{StepOutcome, Value};
 
 fn mm(p: &stitch_robot::Point) -> String {
@@ -99,9 +101,32 @@ fn outcome_text(o: &StepOutcome) -> String {
 
 /// A per-throw timeline of a run and its final outcome; `clock` names the run's time ("simulated time" on the mock, "wall time" over ROS 2).
 pub fn timeline(plan: &Plan, report: &Report, source: &str, robot: &str, clock: &str) -> String {
+    timeline_of(
+        &Rebuilt {
+            plan: PlanHeader {
+                name: plan.name.clone(),
+                file: plan.file.clone(),
+                throws: plan.throws.len(),
+                interventions: plan.interventions,
+                seed: None,
+            },
+            throws: report.throws.clone(),
+            interventions: report.interventions,
+            duration_s: report.duration_s,
+            outcome: Some(report.outcome.clone()),
+        },
+        source,
+        robot,
+        clock,
+    )
+}
+
+/// [`timeline`] of a run rebuilt from its journal (`stitch journal show`); one cut short
+/// says where it stops.
+pub fn timeline_of(run: &Rebuilt, source: &str, robot: &str, clock: &str) -> String {
     let mut s = String::new();
-    let _ = writeln!(s, "{} on {robot}, {source}", plan.name);
-    for (i, t) in report.throws.iter().enumerate() {
+    let _ = writeln!(s, "{} on {robot}, {source}", run.plan.name);
+    for (i, t) in run.throws.iter().enumerate() {
         if t.attempts.is_empty() {
             continue;
         }
@@ -139,16 +164,20 @@ pub fn timeline(plan: &Plan, report: &Report, source: &str, robot: &str, clock: 
             }
         }
     }
-    let done = report.throws.iter().filter(|t| t.completed).count();
-    let outcome = match &report.outcome {
-        RunOutcome::Completed => "completed".to_string(),
-        RunOutcome::Failed {
+    let done = run.throws.iter().filter(|t| t.completed).count();
+    let outcome = match &run.outcome {
+        None => format!(
+            "unknown: the journal stops at {:.3} s, before the run's end (cut short)",
+            run.duration_s
+        ),
+        Some(RunOutcome::Completed) => "completed".to_string(),
+        Some(RunOutcome::Failed {
             class,
             throw,
             primitive,
             reason,
             ..
-        } => format!(
+        }) => format!(
             "failed, class {class}, in throw {} at {primitive}{}",
             throw + 1,
             reason
@@ -156,7 +185,7 @@ pub fn timeline(plan: &Plan, report: &Report, source: &str, robot: &str, clock: 
                 .map(|r| format!(": {}", r.label()))
                 .unwrap_or_default()
         ),
-        RunOutcome::Aborted { by, throw, step } => format!(
+        Some(RunOutcome::Aborted { by, throw, step }) => format!(
             "aborted ({by:?}) before throw {} step {}; arms held",
             throw + 1,
             step + 1
@@ -166,10 +195,10 @@ pub fn timeline(plan: &Plan, report: &Report, source: &str, robot: &str, clock: 
     let _ = writeln!(
         s,
         "sutures completed: {done} of {}; interventions {} of {}; {clock} {:.1} s",
-        plan.throws.len(),
-        report.interventions,
-        plan.interventions.min(caps::INTERVENTIONS),
-        report.duration_s
+        run.plan.throws,
+        run.interventions,
+        run.plan.interventions.min(caps::INTERVENTIONS),
+        run.duration_s
     );
     s
 }

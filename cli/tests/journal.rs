@@ -193,3 +193,122 @@ const FRAME_TOPICS: [&str; 2] = [
     "/stitch/camera/left/image/compressed",
     "/stitch/camera/right/image/compressed",
 ];
+
+#[test]
+fn journal_show_prints_the_timeline_the_run_printed_from_the_file_alone() {
+    for (name, extra) in [
+        ("mock", vec!["--seed", "4"]),
+        ("scripted", vec!["--seed", "4", "--robot", "scripted"]),
+    ] {
+        let path = tmp(&format!("show-{name}.mcap"));
+        let p = path.to_str().expect("utf-8");
+        let ran = stitch(
+            &[
+                &["run", "scripts/stitch_human.rhai", "--journal", p][..],
+                &extra,
+            ]
+            .concat(),
+        );
+        let shown = stitch(&["journal", "show", p]);
+        assert_eq!(
+            shown.status.code(),
+            Some(0),
+            "{}",
+            String::from_utf8_lossy(&shown.stderr)
+        );
+        let printed = String::from_utf8_lossy(&ran.stdout);
+        assert!(printed.contains("throw 1"), "{printed}");
+        assert_eq!(String::from_utf8_lossy(&shown.stdout), printed, "{name}");
+        let json = stitch(&["journal", "show", p, "--json"]);
+        let v: serde_json::Value = serde_json::from_slice(&json.stdout).expect("JSON");
+        assert_eq!(
+            v["plan"]["throws"].as_u64(),
+            Some(v["throws"].as_array().expect("throws").len() as u64)
+        );
+        assert!(v["outcome"]["result"].is_string(), "{v}");
+    }
+}
+
+#[test]
+fn a_replay_of_a_mock_and_a_scripted_run_is_identical() {
+    let schedule = tmp("replay-outcomes.json");
+    std::fs::write(
+        &schedule,
+        r#"{"outcomes": ["ok", "no-progress", "ok", "thread"], "interventions": ["recovered"]}"#,
+    )
+    .expect("schedule");
+    for (name, extra) in [
+        ("mock", vec!["--seed", "6", "--wound-points", "3"]),
+        ("scripted", vec!["--seed", "6", "--robot", "scripted"]),
+        (
+            "outcomes",
+            vec![
+                "--robot",
+                "scripted",
+                "--outcomes",
+                schedule.to_str().expect("utf-8"),
+            ],
+        ),
+    ] {
+        let path = record(&format!("replay-{name}.mcap"), &extra);
+        let out = stitch(&["replay", path.to_str().expect("utf-8")]);
+        let said = String::from_utf8_lossy(&out.stdout);
+        assert_eq!(
+            out.status.code(),
+            Some(0),
+            "{name}: {said}{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        assert!(said.starts_with("identical: "), "{name}: {said}");
+    }
+}
+
+#[test]
+fn a_replay_points_at_the_one_recorded_value_that_was_altered() {
+    let path = record("altered-source.mcap", &["--seed", "4"]);
+    let altered = tmp("altered.mcap");
+    let mut was = None;
+    stitch_recorder::rewrite(&path, &altered, |topic, i, bytes| {
+        if topic == "/PSM2/move_cp" && i == 9 {
+            let mut p: stitch_dvrk::msg::PoseStamped =
+                stitch_dvrk::decode(bytes, "geometry_msgs/msg/PoseStamped").expect("a pose");
+            was = Some(p.pose.position.x);
+            p.pose.position.x += 0.5e-3;
+            *bytes = stitch_dvrk::encode(&p, "geometry_msgs/msg/PoseStamped").expect("encodes");
+        }
+    })
+    .expect("rewritten");
+    let was = was.expect("the file has a tenth PSM2 move");
+    let out = stitch(&["replay", altered.to_str().expect("utf-8")]);
+    let said = String::from_utf8_lossy(&out.stdout);
+    assert_eq!(out.status.code(), Some(7), "{said}");
+    assert!(said.contains("diverges at message"), "{said}");
+    assert!(said.contains("/PSM2/move_cp #9"), "{said}");
+    let lines: Vec<&str> = said.lines().collect();
+    let x = |line: &str| -> f64 {
+        let start = line.find("position (").expect("a position") + "position (".len();
+        line[start..]
+            .split(',')
+            .next()
+            .expect("x")
+            .trim()
+            .parse()
+            .expect("mm")
+    };
+    assert!(
+        (x(lines[1]) - (was + 0.5e-3) * 1e3).abs() < 1e-3,
+        "recorded, altered: {said}"
+    );
+    assert!(
+        (x(lines[2]) - was * 1e3).abs() < 1e-3,
+        "replayed, as it was: {said}"
+    );
+    // The file it came from still replays identical.
+    let out = stitch(&["replay", path.to_str().expect("utf-8")]);
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stdout)
+    );
+}

@@ -290,3 +290,147 @@ impl<'a> Runner<'a> {
 fn unreachable_state(name: &str) -> ! {
     panic!("engine bug: the runner cannot act in state `{name}`")
 }
+
+/// What a journal says about the plan it ran (its first record).
+#[derive(Clone, Debug, PartialEq, Eq, Serialize)]
+pub struct PlanHeader {
+    /// Mission name.
+    pub name: String,
+    /// Script file.
+    pub file: String,
+    /// Number of throws.
+    pub throws: usize,
+    /// Intervention budget.
+    pub interventions: u8,
+    /// The seed of a simulated run.
+    pub seed: Option<u64>,
+}
+
+/// A run's report rebuilt from its journal alone (a recorded run, perhaps cut short by a
+/// crash): the per-throw summaries as the runner keeps them.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Rebuilt {
+    /// The plan.
+    pub plan: PlanHeader,
+    /// One summary per throw of the plan.
+    pub throws: Vec<ThrowSummary>,
+    /// Interventions requested.
+    pub interventions: u8,
+    /// Time of the last record, s.
+    pub duration_s: f64,
+    /// How it ended; `None` if the journal stops before the end.
+    pub outcome: Option<RunOutcome>,
+}
+
+impl Rebuilt {
+    /// Rebuild from `records`, which must begin with the plan record. Records that name a
+    /// throw the plan does not have are an error (the journal is not this plan's).
+    /// `steps_per_throw`, if known, says when a throw is done as the runner does (its last
+    /// step succeeded); without it, a throw is done when its last attempt succeeded and
+    /// another throw followed or the run completed.
+    pub fn from_journal(
+        records: &[crate::Record],
+        steps_per_throw: Option<&[usize]>,
+    ) -> Result<Self, String> {
+        let Some(Entry::Plan {
+            name,
+            file,
+            throws,
+            interventions,
+            seed,
+        }) = records.first().map(|r| &r.entry)
+        else {
+            return Err("the journal does not begin with its plan record".into());
+        };
+        let mut out = Self {
+            plan: PlanHeader {
+                name: name.clone(),
+                file: file.clone(),
+                throws: *throws,
+                interventions: *interventions,
+                seed: *seed,
+            },
+            throws: vec![ThrowSummary::default(); *throws],
+            interventions: 0,
+            duration_s: 0.0,
+            outcome: None,
+        };
+        let mut started: Option<f64> = None;
+        for r in &records[1..] {
+            out.duration_s = r.t_s;
+            let throw = |t: usize, out: &mut Self| -> Result<usize, String> {
+                if t < out.throws.len() {
+                    Ok(t)
+                } else {
+                    Err(format!(
+                        "record {}: throw {} of a plan of {} throws",
+                        r.seq,
+                        t + 1,
+                        out.throws.len()
+                    ))
+                }
+            };
+            match &r.entry {
+                Entry::StepStart { .. } => started = Some(r.t_s),
+                Entry::StepEnd {
+                    throw: t,
+                    step,
+                    primitive,
+                    attempt,
+                    outcome,
+                } => {
+                    let t = throw(*t, &mut out)?;
+                    let start = started.take().unwrap_or(r.t_s);
+                    let primitive = stitch_primitives::StepKind::default_for(primitive)
+                        .map(|k| k.name())
+                        .ok_or_else(|| format!("record {}: no step `{primitive}`", r.seq))?;
+                    out.throws[t].attempts.push(Attempt {
+                        step: *step,
+                        primitive,
+                        attempt: *attempt,
+                        start_s: start,
+                        duration_s: r.t_s - start,
+                        outcome: outcome.clone(),
+                        intervention: None,
+                    });
+                }
+                Entry::Retry { throw: t, .. } => {
+                    let t = throw(*t, &mut out)?;
+                    out.throws[t].retries += 1;
+                }
+                Entry::InterventionRequested { throw: t, .. } => {
+                    let t = throw(*t, &mut out)?;
+                    out.throws[t].interventions += 1;
+                    out.interventions = out.interventions.saturating_add(1);
+                }
+                Entry::InterventionEnded {
+                    throw: t, result, ..
+                } => {
+                    let t = throw(*t, &mut out)?;
+                    if let Some(last) = out.throws[t].attempts.last_mut() {
+                        last.intervention = Some(*result);
+                    }
+                }
+                Entry::Finished { outcome } => out.outcome = Some(outcome.clone()),
+                Entry::Plan { .. } => {
+                    return Err(format!("record {}: a second plan record", r.seq));
+                }
+                Entry::Transition { .. } | Entry::Supervisor { .. } | Entry::Hold { .. } => {}
+            }
+        }
+        let last_started = out.throws.iter().rposition(|t| !t.attempts.is_empty());
+        let completed = matches!(out.outcome, Some(RunOutcome::Completed));
+        for (i, t) in out.throws.iter_mut().enumerate() {
+            let last_ok = t
+                .attempts
+                .last()
+                .filter(|a| matches!(a.outcome, StepOutcome::Succeeded { .. }));
+            t.completed = match (last_ok, steps_per_throw.and_then(|s| s.get(i))) {
+                (Some(a), Some(steps)) => a.step + 1 == *steps,
+                (Some(_), None) => Some(i) < last_started || completed,
+                (None, _) => false,
+            };
+        }
+        Ok(out)
+    }
+}

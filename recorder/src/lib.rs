@@ -9,7 +9,7 @@ pub use msgs::{
     CHANNELS, Channel, CompressedImage, Event, Log, MsgType, NeedleEstimate, Qos, Transition,
     schema_text,
 };
-pub use read::{Recorded, read, recover, to_jsonl};
+pub use read::{Recorded, read, recover, rewrite, to_jsonl};
 pub use tap::{FRAME, Tap, Truth};
 pub use write::{MAX_FRAME_QUEUE_BYTES, Recorder, RecorderOptions, RunInfo, Stats};
 
@@ -18,12 +18,12 @@ pub use write::{MAX_FRAME_QUEUE_BYTES, Recorder, RecorderOptions, RunInfo, Stats
 #[non_exhaustive]
 pub enum RecorderError {
     /// The file could not be created, written or read.
-    #[error("{path}: {source}")]
+    #[error("{path}: {error}")]
     Io {
         /// The file.
         path: String,
-        /// Why.
-        source: std::io::Error,
+        /// Why (in the message, not a separate cause: printed once).
+        error: std::io::Error,
     },
     /// The MCAP layer refused (a bug, or a file that is not MCAP).
     #[error("{path}: MCAP: {why}")]

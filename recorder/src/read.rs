@@ -42,9 +42,9 @@ fn bad(path: &Path, why: impl std::fmt::Display) -> RecorderError {
 /// Read `path`, finished or not (an interrupted run's file is read up to its last closed
 /// chunk; what follows it is not a record and is left).
 pub fn read(path: &Path) -> Result<Recorded, RecorderError> {
-    let buf = std::fs::read(path).map_err(|source| RecorderError::Io {
+    let buf = std::fs::read(path).map_err(|error| RecorderError::Io {
         path: path.display().to_string(),
-        source,
+        error,
     })?;
     let complete = LinearReader::new(&buf)
         .map(|r| r.into_iter().all(|x| x.is_ok()))
@@ -130,10 +130,21 @@ fn take(path: &Path, out: &mut Recorded, record: McapRecord<'_>) -> Result<(), R
 /// Write to `to` a complete file holding everything `from` holds up to its last closed chunk:
 /// metadata, attachments, schemas, channels and messages, in order.
 pub fn recover(from: &Path, to: &Path) -> Result<Recorded, RecorderError> {
+    rewrite(from, to, |_, _, _| {})
+}
+
+/// [`recover`], letting `edit` change each message on the way: it gets the topic, the
+/// message's index on it (from 0) and its bytes. For tools and tests (a recording with one
+/// value altered, to see `stitch replay` find it).
+pub fn rewrite(
+    from: &Path,
+    to: &Path,
+    mut edit: impl FnMut(&str, u32, &mut Vec<u8>),
+) -> Result<Recorded, RecorderError> {
     let got = read(from)?;
-    let file = std::fs::File::create(to).map_err(|source| RecorderError::Io {
+    let file = std::fs::File::create(to).map_err(|error| RecorderError::Io {
         path: to.display().to_string(),
-        source,
+        error,
     })?;
     let err = |e: mcap::McapError| bad(to, e);
     let mut w = mcap::WriteOptions::new()
@@ -179,6 +190,10 @@ pub fn recover(from: &Path, to: &Path) -> Result<Recorded, RecorderError> {
             return Err(bad(from, format!("a message on unknown channel {channel}")));
         };
         let seq = sequence.entry(*id).or_default();
+        let mut data = data.clone();
+        if let Some(c) = got.channels.get(channel) {
+            edit(&c.topic, *seq, &mut data);
+        }
         w.write_to_known_channel(
             &records::MessageHeader {
                 channel_id: *id,
@@ -186,7 +201,7 @@ pub fn recover(from: &Path, to: &Path) -> Result<Recorded, RecorderError> {
                 log_time: *t,
                 publish_time: *t,
             },
-            data,
+            &data,
         )
         .map_err(err)?;
         *seq += 1;

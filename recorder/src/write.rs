@@ -67,6 +67,11 @@ pub struct RunInfo {
     pub robot: String,
     /// The mock configuration file's text, if one was given (attached as `mock.toml`).
     pub mock_config: Option<String>,
+    /// More of what decides the run, for `stitch replay` (perception, wound, steps per
+    /// throw, ...): written into the `stitch_run` metadata beside the above.
+    pub settings: BTreeMap<String, String>,
+    /// More files the run read (an outcome schedule): name, media type, text.
+    pub files: Vec<(String, String, String)>,
 }
 
 /// How a recording is written.
@@ -131,9 +136,9 @@ impl Recorder {
         info: &RunInfo,
         options: RecorderOptions,
     ) -> Result<Self, RecorderError> {
-        let file = std::fs::File::create(path).map_err(|source| RecorderError::Io {
+        let file = std::fs::File::create(path).map_err(|error| RecorderError::Io {
             path: path.display().to_string(),
-            source,
+            error,
         })?;
         let err = mcap_err(path);
         let mut w = mcap::WriteOptions::new()
@@ -147,7 +152,7 @@ impl Recorder {
             .disable_seeking(true)
             .create(BufWriter::new(file))
             .map_err(&err)?;
-        let mut meta = BTreeMap::new();
+        let mut meta = info.settings.clone();
         meta.insert("program".to_string(), info.program.clone());
         meta.insert("plan_file".to_string(), info.plan_file.clone());
         meta.insert(
@@ -184,6 +189,9 @@ impl Recorder {
         if let Some(config) = &info.mock_config {
             attach("mock.toml", "application/toml", config).map_err(&err)?;
         }
+        for (name, media_type, text) in &info.files {
+            attach(name, media_type, text).map_err(&err)?;
+        }
         let mut channels = Channels::default();
         for c in &CHANNELS {
             channels.id(&mut w, c.topic, c.ty, c.qos).map_err(&err)?;
@@ -200,9 +208,9 @@ impl Recorder {
         let thread = std::thread::Builder::new()
             .name("recorder".into())
             .spawn(move || write_loop(w, channels, &rx, &owned, options, &for_writer))
-            .map_err(|source| RecorderError::Io {
+            .map_err(|error| RecorderError::Io {
                 path: path.display().to_string(),
-                source,
+                error,
             })?;
         Ok(Self {
             shared,
