@@ -304,6 +304,9 @@ pub fn run_ros2(
     dvrk.wait_fresh(timeout)?;
     let clock: Arc<dyn Clock> = Arc::new(WallClock::new());
     let tap = recorder.map(|r| r.tap(Arc::clone(&clock)));
+    if let Some(tap) = &tap {
+        tap.wall_epoch();
+    }
     let frames = tap.as_ref().and_then(stitch_recorder::Tap::frames);
     let estimator: Box<dyn NeedleEstimator> = match &camera {
         Some(c) => {
@@ -443,6 +446,9 @@ pub fn run_real(
         .context("the stereo camera's calibration")?;
     let dvrk = connect_arms(ros, config)?;
     let tap = recorder.map(|r| r.tap(Arc::clone(&clock)));
+    if let Some(tap) = &tap {
+        tap.wall_epoch();
+    }
     let frames = tap.as_ref().and_then(stitch_recorder::Tap::frames);
     let estimator = Box::new(PipelineEstimator::new(
         ObservedCamera::new(camera, frames),

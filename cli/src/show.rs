@@ -114,6 +114,7 @@ pub fn timeline(plan: &Plan, report: &Report, source: &str, robot: &str, clock: 
             interventions: report.interventions,
             duration_s: report.duration_s,
             outcome: Some(report.outcome.clone()),
+            under_way: None,
         },
         source,
         robot,
@@ -127,7 +128,8 @@ pub fn timeline_of(run: &Rebuilt, source: &str, robot: &str, clock: &str) -> Str
     let mut s = String::new();
     let _ = writeln!(s, "{} on {robot}, {source}", run.plan.name);
     for (i, t) in run.throws.iter().enumerate() {
-        if t.attempts.is_empty() {
+        let under_way = run.under_way.as_ref().filter(|u| u.throw == i);
+        if t.attempts.is_empty() && under_way.is_none() {
             continue;
         }
         let start = t.attempts.first().map_or(0.0, |a| a.start_s);
@@ -162,6 +164,19 @@ pub fn timeline_of(run: &Rebuilt, source: &str, robot: &str, clock: &str) -> Str
                 };
                 let _ = writeln!(s, "  {:>9}  human intervention: {how}", "");
             }
+        }
+        if let Some(u) = under_way {
+            let label = if u.attempt > 0 {
+                format!("{} #{}", u.primitive, u.attempt + 1)
+            } else {
+                u.primitive.clone()
+            };
+            let _ = writeln!(
+                s,
+                "  {:>7.1} s  {:<18}        under way where the journal stops",
+                u.start_ns as f64 * 1e-9,
+                label
+            );
         }
     }
     let done = run.throws.iter().filter(|t| t.completed).count();

@@ -312,3 +312,148 @@ fn a_replay_points_at_the_one_recorded_value_that_was_altered() {
         String::from_utf8_lossy(&out.stdout)
     );
 }
+
+/// `stitch run --robot ros2` against `stitch sim-node` in real time, killed with SIGKILL in
+/// the middle of the first throw: the file, recovered, holds the run to within 250 ms of the
+/// kill, every event before its last message, and `stitch journal show` prints them.
+#[cfg(feature = "ros2")]
+#[test]
+fn a_run_over_ros2_killed_mid_throw_keeps_its_journal_to_the_last_quarter_second() {
+    use std::process::Stdio;
+    use std::time::{Duration, Instant, SystemTime};
+    use stitch_engine::Entry;
+    let d = (215 + std::process::id() % 10).to_string();
+    let _node = support::SimNode::start(&d, &["--time-scale", "1"]);
+    let path = tmp("killed-mid-throw.mcap");
+    let _ = std::fs::remove_file(&path);
+    let p = path.to_str().expect("utf-8");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_stitch"))
+        .args([
+            "run",
+            "scripts/stitch_human.rhai",
+            "--robot",
+            "ros2",
+            "--domain-id",
+            &d,
+        ])
+        .args(["--journal", p])
+        .current_dir(root())
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(tmp("killed-mid-throw.stderr")).expect("stderr"))
+        .spawn()
+        .expect("stitch run starts");
+    // Mid-throw: the live file shows the first throw's third step under way.
+    let deadline = Instant::now() + Duration::from_secs(90);
+    loop {
+        let third = stitch_recorder::read(&path).ok().is_some_and(|r| {
+            r.records.iter().any(|r| {
+                matches!(
+                    r.entry,
+                    Entry::StepStart {
+                        throw: 0,
+                        step: 2,
+                        ..
+                    }
+                )
+            })
+        });
+        if third {
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "the run never reached throw 1 step 3: {}",
+            std::fs::read_to_string(tmp("killed-mid-throw.stderr")).unwrap_or_default()
+        );
+        assert!(
+            child.try_wait().expect("wait").is_none(),
+            "the run ended early"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    std::thread::sleep(Duration::from_millis(700));
+    let killed_at = SystemTime::now();
+    child.kill().expect("SIGKILL");
+    let _ = child.wait();
+    let unfinished = stitch_recorder::read(&path).expect("readable as it was left");
+    assert!(!unfinished.complete, "a killed run's file has no summary");
+    let fixed = tmp("killed-mid-throw.recovered.mcap");
+    let out = stitch(&[
+        "journal",
+        "recover",
+        p,
+        "--out",
+        fixed.to_str().expect("utf-8"),
+    ]);
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let got = stitch_recorder::read(&fixed).expect("recovered");
+    assert!(got.complete);
+    let epoch_ns: u128 = got
+        .metadata
+        .iter()
+        .find(|(name, _)| name == "stitch_clock")
+        .and_then(|(_, m)| m.get("epoch_unix_ns")?.parse().ok())
+        .expect("a robot's run records its clock's epoch");
+    let kill_ns = killed_at
+        .duration_since(std::time::UNIX_EPOCH)
+        .expect("after 1970")
+        .as_nanos()
+        - epoch_ns;
+    let last_ns = got.messages.iter().map(|m| m.1).max().expect("messages");
+    let lost_s = (kill_ns as f64 - last_ns as f64) * 1e-9;
+    eprintln!(
+        "killed at run time {:.3} s; recovered to {:.3} s: {:.0} ms lost; {} messages, {} events",
+        kill_ns as f64 * 1e-9,
+        last_ns as f64 * 1e-9,
+        lost_s * 1e3,
+        got.messages.len(),
+        got.records.len()
+    );
+    assert!(
+        (0.0..=0.25).contains(&lost_s),
+        "{:.0} ms of the run before the kill lost",
+        lost_s * 1e3
+    );
+    // Events are queued with the telemetry, in order: every one before the last message is
+    // in the file, numbered without a gap, the third step's start among them.
+    for (i, r) in got.records.iter().enumerate() {
+        assert_eq!(r.seq, i as u64, "no event missing");
+    }
+    assert!(got.records.iter().any(|r| matches!(
+        r.entry,
+        Entry::StepStart {
+            throw: 0,
+            step: 2,
+            ..
+        }
+    )));
+    let shown = stitch(&["journal", "show", fixed.to_str().expect("utf-8")]);
+    let said = String::from_utf8_lossy(&shown.stdout);
+    assert_eq!(shown.status.code(), Some(0), "{said}");
+    assert!(said.contains("throw 1 (stopped)"), "{said}");
+    assert!(
+        said.contains("outcome: unknown: the journal stops at"),
+        "{said}"
+    );
+    let steps = got
+        .records
+        .iter()
+        .filter(|r| matches!(r.entry, Entry::StepEnd { .. }))
+        .count();
+    let attempts = said
+        .lines()
+        .filter(|l| l.starts_with("  ") && l.contains(" s  "))
+        .count();
+    assert_eq!(
+        attempts,
+        steps + 1,
+        "every step on the timeline, the last under way: {said}"
+    );
+    assert!(said.contains("under way where the journal stops"), "{said}");
+}

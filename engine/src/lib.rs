@@ -23,7 +23,7 @@ pub use machine::{
 pub use plan::{
     FailureClass, NeedleHolder, Plan, PlanError, PlanErrors, SourcePos, Step, Throw, caps,
 };
-pub use runner::{Attempt, PlanHeader, Rebuilt, Report, Runner, ThrowSummary};
+pub use runner::{Attempt, PlanHeader, Rebuilt, Report, Runner, ThrowSummary, UnderWay};
 pub use schedule::{OutcomeSchedule, ScheduleError};
 pub use script::{API, Angle, Length, Loaded, PlanLoader, ScriptLimits};
 pub use supervisor::{

@@ -320,6 +320,23 @@ pub struct Rebuilt {
     pub duration_s: f64,
     /// How it ended; `None` if the journal stops before the end.
     pub outcome: Option<RunOutcome>,
+    /// A step attempt that began and has no end in the journal (it stops mid-step).
+    pub under_way: Option<UnderWay>,
+}
+
+/// A step attempt under way where a journal stops.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize)]
+pub struct UnderWay {
+    /// Throw index, 0-based.
+    pub throw: usize,
+    /// Step index, 0-based.
+    pub step: usize,
+    /// Step name.
+    pub primitive: String,
+    /// Attempt, 0-based.
+    pub attempt: u32,
+    /// When it began, s (as an integer number of ns, so the type stays `Eq`).
+    pub start_ns: u64,
 }
 
 impl Rebuilt {
@@ -354,6 +371,7 @@ impl Rebuilt {
             interventions: 0,
             duration_s: 0.0,
             outcome: None,
+            under_way: None,
         };
         let mut started: Option<f64> = None;
         for r in &records[1..] {
@@ -371,7 +389,21 @@ impl Rebuilt {
                 }
             };
             match &r.entry {
-                Entry::StepStart { .. } => started = Some(r.t_s),
+                Entry::StepStart {
+                    throw: t,
+                    step,
+                    primitive,
+                    attempt,
+                } => {
+                    started = Some(r.t_s);
+                    out.under_way = Some(UnderWay {
+                        throw: throw(*t, &mut out)?,
+                        step: *step,
+                        primitive: primitive.clone(),
+                        attempt: *attempt,
+                        start_ns: (r.t_s.max(0.0) * 1e9).round() as u64,
+                    });
+                }
                 Entry::StepEnd {
                     throw: t,
                     step,
@@ -380,6 +412,7 @@ impl Rebuilt {
                     outcome,
                 } => {
                     let t = throw(*t, &mut out)?;
+                    out.under_way = None;
                     let start = started.take().unwrap_or(r.t_s);
                     let primitive = stitch_primitives::StepKind::default_for(primitive)
                         .map(|k| k.name())

@@ -191,6 +191,22 @@ impl Tap {
         self.put(topic, &JOINT_STATE, t, &msg);
     }
 
+    /// Record, as the `stitch_clock` metadata, the Unix time at which the run's clock read
+    /// zero: a robot's run is logged in run time, and log time + `epoch_unix_ns` is Unix time
+    /// (to line the file up with a bag the dVRK recorded). Not on a simulated run.
+    pub fn wall_epoch(&self) {
+        let unix = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .unwrap_or_default()
+            .saturating_sub(self.clock.now());
+        let mut m = std::collections::BTreeMap::new();
+        m.insert("epoch_unix_ns".to_string(), unix.as_nanos().to_string());
+        self.shared.send(Item::Metadata(mcap::records::Metadata {
+            name: "stitch_clock".into(),
+            metadata: m,
+        }));
+    }
+
     /// Record a line on `/rosout` (`rcl_interfaces/Log`), now: `level` is [`Log::ERROR`],
     /// [`Log::WARN`] or [`Log::INFO`].
     pub fn log(&self, level: u8, name: &str, text: &str) {

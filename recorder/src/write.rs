@@ -44,13 +44,18 @@ pub(crate) enum Item {
         /// Left and right views.
         views: Box<[stitch_robot::RgbImage; 2]>,
     },
+    /// A metadata record.
+    Metadata(Metadata),
     /// The run is over: write what is left and the summary.
     End,
 }
 
-/// A chunk is closed at least this often, in run time (and in wall time on a robot): what a
-/// crash can lose.
+/// A chunk is closed at least this often in run time: what a crash can lose.
 pub const FLUSH_EVERY: Duration = Duration::from_millis(250);
+/// On a robot, a chunk with anything in it is also closed this often in wall time (a write
+/// every 100 ms costs nothing; what a `kill -9` loses stays under [`FLUSH_EVERY`] with the
+/// queue's and the scheduler's delays on top).
+pub const WALL_FLUSH_EVERY: Duration = Duration::from_millis(100);
 
 /// What a recording says about its run, written first and flushed at once.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
@@ -77,7 +82,7 @@ pub struct RunInfo {
 /// How a recording is written.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct RecorderOptions {
-    /// Also close a chunk every [`FLUSH_EVERY`] of wall time with anything unwritten (a run
+    /// Also close a chunk every [`WALL_FLUSH_EVERY`] of wall time with anything unwritten (a run
     /// on a robot, whose records come in real time). Off on the mock: there, chunks close at
     /// points of simulated time only, so the same seed gives the same bytes.
     pub wall_flush: bool,
@@ -406,7 +411,7 @@ fn write_loop(
     };
     loop {
         let next = if options.wall_flush {
-            match rx.recv_timeout(FLUSH_EVERY.saturating_sub(wall.elapsed())) {
+            match rx.recv_timeout(WALL_FLUSH_EVERY.saturating_sub(wall.elapsed())) {
                 Ok(r) => Some(r),
                 Err(RecvTimeoutError::Timeout) => None,
                 Err(RecvTimeoutError::Disconnected) => break,
@@ -458,6 +463,10 @@ fn write_loop(
         }
         let (t, transition, end) = match item {
             Item::End => break,
+            Item::Metadata(m) => {
+                w.write_metadata(&m).map_err(&err)?;
+                (last_t, true, false)
+            }
             Item::Frame { t_ns, views } => {
                 let size = views[0].data.len() + views[1].data.len();
                 for (view, topic) in views.iter().zip(FRAME_TOPICS) {
@@ -541,7 +550,7 @@ fn write_loop(
         };
         last_t = last_t.max(t);
         dirty = true;
-        let wall_due = options.wall_flush && wall.elapsed() >= FLUSH_EVERY;
+        let wall_due = options.wall_flush && wall.elapsed() >= WALL_FLUSH_EVERY;
         if transition || end || wall_due || t >= flushed_ns + flush_ns {
             w.flush().map_err(&err)?;
             stats.chunks += 1;
