@@ -1,7 +1,7 @@
 //! `stitch trials`: the paper's ablation (Table I, Fig. 4) on the mock, in parallel, with
 //! every file written deterministically.
 
-use crate::{PerceptionKind, exit};
+use crate::{PerceptionKind, RobotKind, exit, record};
 use anyhow::Context;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -9,7 +9,6 @@ use std::sync::Mutex;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use stitch_engine::trials::{Estimate, Metrics, TrialRecord, metrics};
 use stitch_primitives::MockPerception;
-use stitch_sim::SensingConfig;
 
 /// The policies run by default: the paper's, in its order, then STITCH+.
 pub const DEFAULT_POLICIES: [&str; 5] = [
@@ -36,7 +35,7 @@ pub struct TrialsArgs {
     #[arg(long)]
     jobs: Option<usize>,
     /// Directory to write table.md, trials.csv, trials.json, histogram.svg, histogram.png and
-    /// journals/ into (created if missing).
+    /// journals/ (one file per trial) into (created if missing).
     #[arg(long)]
     out: PathBuf,
     /// How the mock estimates the needle pose (see `stitch run --help`).
@@ -45,6 +44,23 @@ pub struct TrialsArgs {
     /// The mock's scene, models and faults (TOML; see docs/mock-dvrk.md).
     #[arg(long)]
     mock_config: Option<PathBuf>,
+    /// Each trial's journal: `mcap`, the flight recorder's file, streamed while the trial
+    /// runs (docs/journal.md), or `jsonl`, the engine's events only, written at its end.
+    #[arg(long, value_enum, default_value_t = JournalFormat::Mcap)]
+    journal_format: JournalFormat,
+    /// With MCAP journals and --perception pipeline: record each trial's stereo pairs
+    /// (JPEG) at most this often, Hz; 0 (the default): none.
+    #[arg(long, default_value_t = 0.0, value_name = "HZ")]
+    record_frames: f64,
+}
+
+/// How `stitch trials` writes each trial's journal.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum JournalFormat {
+    /// `journals/POLICY-SEED.mcap`: the flight recorder's file.
+    Mcap,
+    /// `journals/POLICY-SEED.jsonl`: the engine's events as JSON Lines.
+    Jsonl,
 }
 
 /// Most trials per policy one command runs (each writes a journal file).
@@ -93,6 +109,8 @@ struct Policy {
     /// The plan's mission name.
     name: String,
     loaded: stitch_engine::Loaded,
+    /// The plan script.
+    path: PathBuf,
 }
 
 pub fn trials(args: TrialsArgs) -> anyhow::Result<u8> {
@@ -134,16 +152,15 @@ pub fn trials(args: TrialsArgs) -> anyhow::Result<u8> {
             key,
             name: loaded.plan.name.clone(),
             loaded,
+            path,
         });
     }
     std::fs::create_dir_all(args.out.join("journals"))
         .with_context(|| format!("cannot create {}", args.out.display()))?;
-    let perception = match args.perception {
-        PerceptionKind::Model => MockPerception::Model(mock.sensing),
-        PerceptionKind::Perfect => MockPerception::Model(SensingConfig::perfect()),
-        PerceptionKind::Fitted => MockPerception::Model(SensingConfig::fitted_to_pipeline()),
-        PerceptionKind::Pipeline => MockPerception::Pipeline(Box::new(mock.camera.clone())),
-    };
+    if args.record_frames != 0.0 && args.journal_format != JournalFormat::Mcap {
+        anyhow::bail!("--record-frames records into MCAP journals: drop --journal-format jsonl");
+    }
+    let perception = args.perception.of(&mock);
     let jobs: Vec<(usize, u64)> = (0..policies.len())
         .flat_map(|p| (0..args.trials as u64).map(move |i| (p, args.seed + i)))
         .collect();
@@ -167,34 +184,7 @@ pub fn trials(args: TrialsArgs) -> anyhow::Result<u8> {
                     let j = next.fetch_add(1, Ordering::Relaxed);
                     let Some(&(p, seed)) = jobs.get(j) else { break };
                     let policy = &policies[p];
-                    let result = crate::run_mock(
-                        &policy.loaded,
-                        &mock.scene,
-                        perception.clone(),
-                        seed,
-                        None,
-                    )
-                    .and_then(|report| {
-                        let record = TrialRecord::from_report(
-                            &policy.name,
-                            seed,
-                            &policy.loaded.plan,
-                            &report,
-                        );
-                        // Each journal goes to its file at once: memory holds only
-                        // the records, however many trials run.
-                        let path = args
-                            .out
-                            .join("journals")
-                            .join(format!("{}-{seed}.jsonl", policy.key));
-                        let file = std::fs::File::create(&path)
-                            .with_context(|| format!("cannot write {}", path.display()))?;
-                        report
-                            .journal
-                            .write_jsonl(std::io::BufWriter::new(file))
-                            .with_context(|| format!("cannot write {}", path.display()))?;
-                        Ok(record)
-                    });
+                    let result = trial(policy, seed, &args, &mock, &perception);
                     results
                         .lock()
                         .unwrap_or_else(std::sync::PoisonError::into_inner)[j] = Some(result);
@@ -257,6 +247,63 @@ pub fn trials(args: TrialsArgs) -> anyhow::Result<u8> {
         args.out.display()
     );
     Ok(exit::OK)
+}
+
+/// One trial, its journal written as it runs (MCAP) or at its end (JSON Lines): memory holds
+/// only the records, however many trials run.
+fn trial(
+    policy: &Policy,
+    seed: u64,
+    args: &TrialsArgs,
+    mock: &crate::MockConfig,
+    perception: &MockPerception,
+) -> TrialResult {
+    let ext = match args.journal_format {
+        JournalFormat::Mcap => "mcap",
+        JournalFormat::Jsonl => "jsonl",
+    };
+    let path = args
+        .out
+        .join("journals")
+        .join(format!("{}-{seed}.{ext}", policy.key));
+    let recorder = match args.journal_format {
+        JournalFormat::Mcap => {
+            // What `stitch run POLICY --seed SEED --journal FILE.mcap` records: the same file.
+            let info = record::run_info(&record::RunSettings {
+                plan: &policy.path,
+                seed: Some(seed),
+                robot: RobotKind::Mock.name(),
+                mock_config: args.mock_config.as_deref(),
+                outcomes: None,
+                perception: args.perception.name(),
+                wound: &mock.scene.wound,
+                loaded: &policy.loaded,
+                frames_hz: args.record_frames,
+            })?;
+            Some(record::start(&path, &info, false, args.record_frames)?)
+        }
+        JournalFormat::Jsonl => None,
+    };
+    let report = crate::run_mock(
+        &policy.loaded,
+        &mock.scene,
+        perception.clone(),
+        seed,
+        recorder.as_ref(),
+    )?;
+    let record = TrialRecord::from_report(&policy.name, seed, &policy.loaded.plan, &report);
+    match recorder {
+        Some(r) => record::finish(r)?,
+        None => {
+            let file = std::fs::File::create(&path)
+                .with_context(|| format!("cannot write {}", path.display()))?;
+            report
+                .journal
+                .write_jsonl(std::io::BufWriter::new(file))
+                .with_context(|| format!("cannot write {}", path.display()))?;
+        }
+    }
+    Ok(record)
 }
 
 fn ci(e: &Estimate, scale: f64, digits: usize) -> String {

@@ -75,10 +75,7 @@ fn trials_write_every_file_and_the_same_bytes_on_one_or_two_threads() {
         names.iter().filter(|n| n.starts_with("journals")).count(),
         15
     );
-    assert!(
-        names.contains(&"journals/stitch_human-7.jsonl"),
-        "{names:?}"
-    );
+    assert!(names.contains(&"journals/stitch_human-7.mcap"), "{names:?}");
     assert_eq!(fa, fb, "the files depend on --jobs");
     let csv = text(&fa.iter().find(|(n, _)| n == "trials.csv").expect("csv").1);
     assert_eq!(csv.lines().count(), 1 + 15);
@@ -94,8 +91,8 @@ fn trials_write_every_file_and_the_same_bytes_on_one_or_two_threads() {
             .expect("JSON");
     assert_eq!(json["trials"].as_array().expect("trials").len(), 15);
     assert_eq!(json["metrics"].as_array().expect("metrics").len(), 5);
-    // The journals are the runs: the same seed with `stitch run` writes the same journal.
-    let j = dir("run.jsonl");
+    // The journals are the runs: the same seed with `stitch run` records the same file.
+    let j = dir("run.mcap");
     let out = stitch(&[
         "run",
         "scripts/stitch.rhai",
@@ -111,10 +108,48 @@ fn trials_write_every_file_and_the_same_bytes_on_one_or_two_threads() {
     );
     let journal = &fa
         .iter()
-        .find(|(n, _)| n == "journals/stitch-6.jsonl")
+        .find(|(n, _)| n == "journals/stitch-6.mcap")
         .expect("j")
         .1;
-    assert_eq!(&std::fs::read(&j).expect("journal"), journal);
+    assert!(
+        &std::fs::read(&j).expect("journal") == journal,
+        "stitch trials and stitch run recorded seed 6 differently"
+    );
+}
+
+#[test]
+fn trials_can_write_json_lines_journals_instead() {
+    let d = dir("jsonl");
+    let out = stitch(&[
+        "trials",
+        "--trials",
+        "2",
+        "--policies",
+        "stitch",
+        "--journal-format",
+        "jsonl",
+        "--out",
+        d.to_str().expect("utf-8"),
+    ]);
+    assert_eq!(out.status.code(), Some(0), "{}", text(&out.stderr));
+    let j = dir("jsonl-run.jsonl");
+    let run = stitch(&[
+        "run",
+        "scripts/stitch.rhai",
+        "--seed",
+        "2",
+        "--journal",
+        j.to_str().expect("utf-8"),
+    ]);
+    assert!(
+        matches!(run.status.code(), Some(0 | 4)),
+        "{}",
+        text(&run.stderr)
+    );
+    assert_eq!(
+        std::fs::read(d.join("journals/stitch-2.jsonl")).expect("trial journal"),
+        std::fs::read(&j).expect("run journal")
+    );
 }
 
 #[test]
