@@ -336,6 +336,20 @@ fn describe(schema: &str, bytes: &[u8]) -> String {
             d::<stitch_recorder::Transition>(bytes, "stitch_msgs/msg/Transition")
                 .map(|t| format!("{} → {}", t.from_state, t.to_state))
         }
+        "stitch_msgs/msg/StepEnd" => {
+            d::<stitch_recorder::StepEnd>(bytes, "stitch_msgs/msg/StepEnd").map(|e| {
+                format!(
+                    "t{} s{} {} a{}: {}, entry error {} m, exit error {} m",
+                    e.throw_index,
+                    e.step,
+                    e.primitive,
+                    e.attempt,
+                    if e.ok { "ok".to_string() } else { e.failure },
+                    e.entry_error_m,
+                    e.exit_error_m
+                )
+            })
+        }
         "geometry_msgs/msg/PoseStamped" => {
             d::<PoseStamped>(bytes, "geometry_msgs/msg/PoseStamped").map(|p| pose(&p.pose))
         }

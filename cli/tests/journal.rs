@@ -161,6 +161,7 @@ fn readers_this_project_did_not_write_decode_every_message() {
         "/PSM1/jaw/move_jp",
         "/stitch/needle/estimate",
         "/stitch/needle/truth",
+        "/stitch/steps",
     ] {
         assert!(
             lines[0].contains(&format!("\"{topic}\"")),

@@ -6,8 +6,8 @@ mod tap;
 mod write;
 
 pub use msgs::{
-    CHANNELS, Channel, CompressedImage, Event, Log, MsgType, NeedleEstimate, Qos, Transition,
-    schema_text,
+    CHANNELS, Channel, CompressedImage, Event, Log, MsgType, NeedleEstimate, Qos, StepEnd,
+    Transition, schema_text,
 };
 pub use read::{Recorded, read, recover, rewrite, to_jsonl};
 pub use tap::{FRAME, Tap, Truth};

@@ -31,6 +31,39 @@ pub struct Transition {
     pub to_state: String,
 }
 
+/// `stitch_msgs/msg/StepEnd` (`recorder/msg/StepEnd.msg`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct StepEnd {
+    /// Run time since the run began.
+    pub stamp: Time,
+    /// The journal's sequence number.
+    pub seq: u64,
+    /// Throw, from 0.
+    pub throw_index: u32,
+    /// Step, from 0.
+    pub step: u32,
+    /// Attempt, from 0.
+    pub attempt: u32,
+    /// The step's name.
+    pub primitive: String,
+    /// Whether it succeeded.
+    pub ok: bool,
+    /// The failure's kind, empty on success.
+    pub failure: String,
+    /// Entry error, m (NaN: not measured).
+    pub entry_error_m: f64,
+    /// Exit error, m.
+    pub exit_error_m: f64,
+    /// Endpoint travel, m.
+    pub endpoint_travel_m: f64,
+    /// Normal change, rad.
+    pub normal_change_rad: f64,
+    /// Thread used, m.
+    pub thread_used_m: f64,
+    /// Thread left, m.
+    pub thread_left_m: f64,
+}
+
 /// `stitch_msgs/msg/NeedleEstimate` (`recorder/msg/NeedleEstimate.msg`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct NeedleEstimate {
@@ -178,6 +211,12 @@ pub static TRANSITION: MsgType = MsgType {
     msg: include_str!("../msg/Transition.msg"),
     uses: &[&TIME],
 };
+/// `stitch_msgs/msg/StepEnd`.
+pub static STEP_END: MsgType = MsgType {
+    name: "stitch_msgs/msg/StepEnd",
+    msg: include_str!("../msg/StepEnd.msg"),
+    uses: &[&TIME],
+};
 /// `stitch_msgs/msg/NeedleEstimate`.
 pub static NEEDLE_ESTIMATE: MsgType = MsgType {
     name: "stitch_msgs/msg/NeedleEstimate",
@@ -224,7 +263,7 @@ pub struct Channel {
 
 /// The channels every recording has, first, in this order; the arms', the estimator's and
 /// the cameras' follow as their first message comes.
-pub const CHANNELS: [Channel; 2] = [
+pub const CHANNELS: [Channel; 3] = [
     Channel {
         topic: "/stitch/events",
         ty: &EVENT,
@@ -233,6 +272,11 @@ pub const CHANNELS: [Channel; 2] = [
     Channel {
         topic: "/stitch/transitions",
         ty: &TRANSITION,
+        qos: Qos::Latched,
+    },
+    Channel {
+        topic: "/stitch/steps",
+        ty: &STEP_END,
         qos: Qos::Latched,
     },
 ];

@@ -3,8 +3,8 @@
 
 use crate::RecorderError;
 use crate::msgs::{
-    CHANNELS, COMPRESSED_IMAGE, CompressedImage, Event, Log, MsgType, Qos, Transition, nanos,
-    schema_text, stamp,
+    CHANNELS, COMPRESSED_IMAGE, CompressedImage, Event, Log, MsgType, Qos, StepEnd, Transition,
+    nanos, schema_text, stamp,
 };
 use crate::tap::{Shared, Tap};
 use mcap::records::{MessageHeader, Metadata};
@@ -17,6 +17,7 @@ use std::sync::mpsc::{Receiver, RecvTimeoutError, channel};
 use std::sync::{Arc, PoisonError};
 use std::time::{Duration, Instant};
 use stitch_engine::{Entry, JournalSink as Sink, Record};
+use stitch_primitives::StepOutcome;
 use stitch_robot::Clock;
 
 /// What goes to the writer thread, in the order it is to be written.
@@ -325,6 +326,18 @@ fn hex(bytes: &[u8]) -> String {
     bytes.iter().map(|b| format!("{b:02x}")).collect()
 }
 
+/// A failure's kind as the journal names it (`no_progress`, `missed`, ...).
+fn event_kind(kind: &stitch_primitives::FailureKind) -> String {
+    match serde_json::to_value(kind) {
+        Ok(serde_json::Value::Object(m)) => m
+            .get("kind")
+            .and_then(|v| v.as_str())
+            .unwrap_or("unknown")
+            .to_string(),
+        _ => "unknown".into(),
+    }
+}
+
 fn event_name(entry: &Entry) -> String {
     match serde_json::to_value(entry) {
         Ok(serde_json::Value::Object(m)) => m
@@ -545,6 +558,47 @@ fn write_loop(
                 } else {
                     false
                 };
+                if let Entry::StepEnd {
+                    throw,
+                    step,
+                    primitive,
+                    attempt,
+                    outcome,
+                } = &r.entry
+                {
+                    let m = outcome.measured();
+                    let v = |x: Option<f64>| x.unwrap_or(f64::NAN);
+                    let msg = StepEnd {
+                        stamp: stamp(r.t_s),
+                        seq: r.seq,
+                        throw_index: u32::try_from(*throw).unwrap_or(u32::MAX),
+                        step: u32::try_from(*step).unwrap_or(u32::MAX),
+                        attempt: *attempt,
+                        primitive: primitive.clone(),
+                        ok: matches!(outcome, StepOutcome::Succeeded { .. }),
+                        failure: match outcome {
+                            StepOutcome::Succeeded { .. } => String::new(),
+                            StepOutcome::Failed(f) => event_kind(&f.kind),
+                        },
+                        entry_error_m: v(m.entry_error_m),
+                        exit_error_m: v(m.exit_error_m),
+                        endpoint_travel_m: v(m.endpoint_travel_m),
+                        normal_change_rad: v(m.normal_change_rad),
+                        thread_used_m: v(m.thread_used_m),
+                        thread_left_m: v(m.thread_left_m),
+                    };
+                    let bytes = stitch_dvrk::encode(&msg, crate::msgs::STEP_END.name)
+                        .map_err(|e| message(e.to_string()))?;
+                    put(
+                        &mut w,
+                        CHANNELS[2].topic,
+                        CHANNELS[2].ty,
+                        CHANNELS[2].qos,
+                        t,
+                        &bytes,
+                    )
+                    .map_err(&err)?;
+                }
                 (t, transition, matches!(r.entry, Entry::Finished { .. }))
             }
         };
