@@ -125,7 +125,42 @@ pub struct Recorder {
     path: PathBuf,
 }
 
-type McapWriter = mcap::Writer<BufWriter<std::fs::File>>;
+type McapWriter = mcap::Writer<Tracked>;
+
+/// The file behind a buffer, knowing its own position. The MCAP writer asks the position
+/// (`seek(Current(0))`) for every record it indexes; a `BufWriter<File>` answers by flushing
+/// its buffer and asking the kernel, two system calls a message (strace: 1,997 `lseek` and
+/// 1,213 `write` for a mock mission; 396 `write` and no `lseek` with this). Written by hand:
+/// no crate does just this.
+#[derive(Debug)]
+struct Tracked {
+    file: BufWriter<std::fs::File>,
+    pos: u64,
+}
+
+impl std::io::Write for Tracked {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        let n = self.file.write(buf)?;
+        self.pos += n as u64;
+        Ok(n)
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.file.flush()
+    }
+}
+
+impl std::io::Seek for Tracked {
+    fn seek(&mut self, to: std::io::SeekFrom) -> std::io::Result<u64> {
+        match to {
+            std::io::SeekFrom::Current(0) => Ok(self.pos),
+            // The writer is made with seeking disabled: it only ever asks where it is.
+            other => Err(std::io::Error::new(
+                std::io::ErrorKind::Unsupported,
+                format!("the recorder's file only appends (asked to seek {other:?})"),
+            )),
+        }
+    }
+}
 
 fn mcap_err(path: &Path) -> impl Fn(mcap::McapError) -> RecorderError + '_ {
     move |e| RecorderError::Mcap {
@@ -156,7 +191,10 @@ impl Recorder {
             // it grows and its header patched by seeking back: one write per chunk, not ~9
             // system calls (measured with strace).
             .disable_seeking(true)
-            .create(BufWriter::new(file))
+            .create(Tracked {
+                file: BufWriter::with_capacity(1 << 16, file),
+                pos: 0,
+            })
             .map_err(&err)?;
         let mut meta = info.settings.clone();
         meta.insert("program".to_string(), info.program.clone());
