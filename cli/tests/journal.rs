@@ -184,6 +184,34 @@ fn readers_this_project_did_not_write_decode_every_message() {
         );
         assert!(lines[2].contains(topic), "{topic}: {}", lines[2]);
     }
+    // Every topic the documented Foxglove layout shows is in a pipeline run's file.
+    let layout: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(root().join("docs/foxglove/stitch-layout.json")).expect("layout"),
+    )
+    .expect("JSON");
+    let mut shown = Vec::new();
+    for (_, panel) in layout["configById"].as_object().expect("panels") {
+        if let Some(topics) = panel["topics"].as_object() {
+            shown.extend(topics.keys().cloned());
+        }
+        if let Some(t) = panel["imageMode"]["imageTopic"].as_str() {
+            shown.push(t.to_string());
+        }
+        let mut paths: Vec<&str> = panel["paths"]
+            .as_array()
+            .map(|p| p.iter().filter_map(|v| v["value"].as_str()).collect())
+            .unwrap_or_default();
+        paths.extend(panel["topicPath"].as_str());
+        for p in paths {
+            shown.push(p.split('.').next().expect("a topic").to_string());
+        }
+    }
+    assert!(shown.len() >= 10, "{shown:?}");
+    for topic in &shown {
+        let in_file = lines[2].contains(&format!("\"{topic}\""));
+        // setpoint_cp is sampled on a robot only; the mock records what flows through.
+        assert!(in_file || topic.ends_with("/setpoint_cp"), "{topic} not recorded: {}", lines[2]);
+    }
     // The recorder's taps change nothing: the pipeline run's journal is the one without it.
     let jsonl = record("py-pipeline.jsonl", &pipeline[..4]);
     assert_eq!(
