@@ -8,10 +8,17 @@ use anyhow::Context;
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
+use std::time::Duration;
 use stitch_dvrk::msg::{JointState, OperatingState, PoseStamped};
-use stitch_engine::{Loaded, OutcomeSchedule, PlanLoader, Rebuilt, ScriptLimits, validate};
+use stitch_engine::{
+    Entry, InterventionRequest, InterventionResult, Loaded, OutcomeSchedule, PlanLoader, Rebuilt,
+    Record, Runner, ScriptLimits, Supervisor, SupervisorCommand, TimedCommand, validate,
+};
+use stitch_primitives::{
+    Failure, FailureKind, Measurements, PrimitiveError, Primitives, StepOutcome, StepRequest,
+};
 use stitch_recorder::{Recorded, RunInfo};
-use stitch_robot::{Wound, WoundSpec};
+use stitch_robot::{SimClock, Wound, WoundSpec};
 
 /// A recording and what its `stitch_run` metadata says.
 struct Recording {
@@ -142,6 +149,13 @@ pub struct ReplayArgs {
     /// Keep the replay's own recording here (default: a temporary file, removed).
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// Instead, run this other plan on the outcomes the file recorded (any robot, a dVRK's
+    /// run included): each of its step attempts gets the next recorded outcome of a step of
+    /// that kind, each intervention the next recorded result, and the supervisor's commands
+    /// come when they came; prints its timeline and its first decision that differs from
+    /// the recorded run's. Nothing moves.
+    #[arg(long, value_name = "OTHER.rhai")]
+    pub plan: Option<PathBuf>,
 }
 
 /// Exit status of a replay that diverged from its recording.
@@ -152,10 +166,13 @@ pub const DIVERGED: u8 = 7;
 pub fn replay(args: &ReplayArgs) -> anyhow::Result<u8> {
     let rec = Recording::read(&args.file)?;
     let robot = rec.robot()?;
+    if let Some(other) = &args.plan {
+        return what_if(&rec, other);
+    }
     if robot == RobotKind::Ros2 {
         anyhow::bail!(
-            "{}: recorded on a dVRK over ROS 2; only mock and scripted runs replay (the robot's \
-             world is not in the file)",
+            "{}: recorded on a dVRK over ROS 2: the robot's world is not in the file, so the run \
+             cannot be run again; `--plan OTHER.rhai` runs another plan on its recorded outcomes",
             args.file.display()
         );
     }
@@ -382,4 +399,262 @@ fn describe(schema: &str, bytes: &[u8]) -> String {
         _ => None,
     };
     text.unwrap_or_else(|| format!("{schema}, {} bytes (undecodable)", bytes.len()))
+}
+
+/// Where a what-if run went past what the recording holds.
+#[derive(Clone, Debug, Default)]
+struct RanOut {
+    /// The attempt (counted from 0 over the run) that had no recorded outcome, and why.
+    at: Option<(usize, String)>,
+}
+
+/// Primitives that answer each attempt with the next outcome the recording holds for a step
+/// of its kind, taking as long as that attempt took; nothing moves.
+struct RecordedOutcomes {
+    by_kind: BTreeMap<String, std::collections::VecDeque<(StepOutcome, f64)>>,
+    clock: SimClock,
+    attempts: usize,
+    ran_out: std::rc::Rc<std::cell::RefCell<RanOut>>,
+}
+
+impl Primitives for RecordedOutcomes {
+    fn run(&mut self, req: &StepRequest<'_>) -> StepOutcome {
+        let i = self.attempts;
+        self.attempts += 1;
+        let name = req.kind.name();
+        match self.by_kind.get_mut(name).and_then(|q| q.pop_front()) {
+            Some((outcome, duration_s)) => {
+                self.clock
+                    .advance(Duration::from_secs_f64(duration_s.max(0.0)));
+                outcome
+            }
+            None => {
+                let mut r = self.ran_out.borrow_mut();
+                if r.at.is_none() {
+                    r.at = Some((
+                        i,
+                        format!(
+                            "throw {} step {} ({name}) asks for more `{name}` outcomes than the \
+                             recording holds",
+                            req.throw + 1,
+                            req.step + 1
+                        ),
+                    ));
+                }
+                StepOutcome::Failed(Failure {
+                    kind: FailureKind::ArmFault {
+                        message: "no recorded outcome (what-if replay)".into(),
+                    },
+                    measured: Measurements::default(),
+                })
+            }
+        }
+    }
+
+    fn hold_all(&mut self) -> Result<(), PrimitiveError> {
+        Ok(())
+    }
+}
+
+/// The recorded supervisor: its commands when they came (by attempts started), its
+/// interventions' results in order; once the run is past the recording, an abort.
+struct RecordedSupervisor {
+    commands: std::collections::VecDeque<TimedCommand>,
+    interventions: std::collections::VecDeque<InterventionResult>,
+    ran_out: std::rc::Rc<std::cell::RefCell<RanOut>>,
+    attempts: usize,
+}
+
+impl Supervisor for RecordedSupervisor {
+    fn poll(&mut self, attempts: usize) -> Option<SupervisorCommand> {
+        self.attempts = attempts;
+        if self.ran_out.borrow().at.is_some() {
+            return Some(SupervisorCommand::Abort);
+        }
+        if self.commands.front().is_some_and(|c| c.at <= attempts) {
+            self.commands.pop_front().map(|c| c.command)
+        } else {
+            None
+        }
+    }
+
+    fn wait(&mut self) -> Option<SupervisorCommand> {
+        if self.ran_out.borrow().at.is_some() {
+            return Some(SupervisorCommand::Abort);
+        }
+        self.commands.pop_front().map(|c| c.command)
+    }
+
+    fn intervene(&mut self, request: &InterventionRequest) -> InterventionResult {
+        match self.interventions.pop_front() {
+            Some(r) => r,
+            None => {
+                let mut r = self.ran_out.borrow_mut();
+                if r.at.is_none() {
+                    r.at = Some((
+                        self.attempts,
+                        format!(
+                            "throw {} step {} asks for an intervention the recording does not hold",
+                            request.throw + 1,
+                            request.step + 1
+                        ),
+                    ));
+                }
+                InterventionResult::Recovered
+            }
+        }
+    }
+}
+
+/// A journal's decisions: what the machine chose, without times.
+fn decisions(records: &[Record]) -> Vec<(f64, String)> {
+    records
+        .iter()
+        .filter(|r| {
+            matches!(
+                r.entry,
+                Entry::Transition { .. }
+                    | Entry::Retry { .. }
+                    | Entry::InterventionRequested { .. }
+                    | Entry::InterventionEnded { .. }
+                    | Entry::Finished { .. }
+            )
+        })
+        .map(|r| {
+            let mut v = serde_json::to_value(&r.entry).unwrap_or_default();
+            if let Some(m) = v.as_object_mut() {
+                m.remove("t_s");
+            }
+            (r.t_s, v.to_string())
+        })
+        .collect()
+}
+
+/// `stitch replay FILE --plan OTHER.rhai`.
+fn what_if(rec: &Recording, other: &Path) -> anyhow::Result<u8> {
+    let records = &rec.got.records;
+    let mut by_kind: BTreeMap<String, std::collections::VecDeque<(StepOutcome, f64)>> =
+        BTreeMap::new();
+    let mut commands = std::collections::VecDeque::new();
+    let mut interventions = std::collections::VecDeque::new();
+    let (mut started, mut started_at) = (0usize, 0.0);
+    for r in records {
+        match &r.entry {
+            Entry::StepStart { .. } => {
+                started += 1;
+                started_at = r.t_s;
+            }
+            Entry::StepEnd {
+                primitive, outcome, ..
+            } => by_kind
+                .entry(primitive.clone())
+                .or_default()
+                .push_back((outcome.clone(), r.t_s - started_at)),
+            Entry::InterventionEnded { result, .. } => interventions.push_back(*result),
+            Entry::Supervisor { command, .. } => commands.push_back(TimedCommand {
+                at: started,
+                command: *command,
+            }),
+            _ => {}
+        }
+    }
+    let wound: WoundSpec = match rec.meta.get("wound") {
+        Some(w) => serde_json::from_str(w)
+            .with_context(|| format!("{}: the recorded wound", rec.file.display()))?,
+        None => WoundSpec::default(),
+    };
+    let text = std::fs::read_to_string(other)
+        .with_context(|| format!("cannot read the plan {}", other.display()))?;
+    let loaded = load(&other.display().to_string(), &text, &wound)?;
+    let clock = SimClock::new();
+    let ran_out = std::rc::Rc::new(std::cell::RefCell::new(RanOut::default()));
+    let mut primitives = RecordedOutcomes {
+        by_kind,
+        clock: clock.clone(),
+        attempts: 0,
+        ran_out: std::rc::Rc::clone(&ran_out),
+    };
+    let mut supervisor = RecordedSupervisor {
+        commands,
+        interventions,
+        ran_out: std::rc::Rc::clone(&ran_out),
+        attempts: 0,
+    };
+    let plan = std::sync::Arc::new(loaded.plan.clone());
+    let report = Runner::new(
+        plan,
+        &mut primitives,
+        &mut supervisor,
+        std::sync::Arc::new(clock),
+        None,
+    )
+    .run();
+    let mut out = String::new();
+    let _ = writeln!(
+        out,
+        "{} on the outcomes recorded in {} ({} run of {}):",
+        other.display(),
+        rec.file.display(),
+        rec.meta.get("robot").map_or("a", String::as_str),
+        rec.meta.get("plan_file").map_or("?", String::as_str)
+    );
+    let ran_out = ran_out.borrow().at.clone();
+    // The other run's records before the attempt the recording could not answer.
+    let cut = ran_out.as_ref().map(|(i, _)| {
+        report
+            .journal
+            .records()
+            .iter()
+            .filter(|r| matches!(r.entry, Entry::StepStart { .. }))
+            .nth(*i)
+            .map_or(usize::MAX, |r| r.seq as usize)
+    });
+    let theirs = &report.journal.records()[..cut
+        .unwrap_or(usize::MAX)
+        .min(report.journal.records().len())];
+    out.push_str(&show::timeline(
+        &loaded.plan,
+        &report,
+        "nothing moves",
+        "the recorded outcomes",
+        "recorded time",
+    ));
+    if let Some((_, why)) = &ran_out {
+        let _ = writeln!(
+            out,
+            "beyond the recording: {why}; the other plan's run stops there (aborted), and only \
+             its decisions before it are compared"
+        );
+    }
+    let (a, b) = (decisions(records), decisions(theirs));
+    let first = a.iter().zip(&b).position(|(x, y)| x.1 != y.1);
+    match first {
+        Some(i) => {
+            let _ = writeln!(out, "decisions: the first {i} as recorded; then");
+            let _ = writeln!(out, "  recorded:   {:>8.1} s {}", a[i].0, a[i].1);
+            let _ = writeln!(out, "  other plan: {:>8.1} s {}", b[i].0, b[i].1);
+        }
+        None if a.len() == b.len() => {
+            let _ = writeln!(out, "decisions: all {} as recorded", a.len());
+        }
+        None => {
+            let n = a.len().min(b.len());
+            let (longer, more) = if a.len() > n {
+                ("the recorded run", &a[n])
+            } else {
+                ("the other plan", &b[n])
+            };
+            let _ = writeln!(
+                out,
+                "decisions: the first {n} as recorded; then only {longer} goes on: {:.1} s {}",
+                more.0, more.1
+            );
+        }
+    }
+    print!("{out}");
+    Ok(if first.is_none() && a.len() == b.len() {
+        exit::OK
+    } else {
+        DIVERGED
+    })
 }

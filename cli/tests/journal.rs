@@ -174,7 +174,10 @@ fn readers_this_project_did_not_write_decode_every_message() {
         );
     }
     for line in &lines {
-        assert!(line.contains("\"/stitch/steps\""), "typed step ends: {line}");
+        assert!(
+            line.contains("\"/stitch/steps\""),
+            "typed step ends: {line}"
+        );
     }
     for topic in FRAME_TOPICS {
         assert!(
@@ -210,7 +213,11 @@ fn readers_this_project_did_not_write_decode_every_message() {
     for topic in &shown {
         let in_file = lines[2].contains(&format!("\"{topic}\""));
         // setpoint_cp is sampled on a robot only; the mock records what flows through.
-        assert!(in_file || topic.ends_with("/setpoint_cp"), "{topic} not recorded: {}", lines[2]);
+        assert!(
+            in_file || topic.ends_with("/setpoint_cp"),
+            "{topic} not recorded: {}",
+            lines[2]
+        );
     }
     // The recorder's taps change nothing: the pipeline run's journal is the one without it.
     let jsonl = record("py-pipeline.jsonl", &pipeline[..4]);
@@ -342,6 +349,33 @@ fn a_replay_points_at_the_one_recorded_value_that_was_altered() {
         "{}",
         String::from_utf8_lossy(&out.stdout)
     );
+}
+
+#[test]
+fn another_plan_on_a_recorded_runs_outcomes_shows_its_first_different_decision() {
+    // Seed 4: STITCH + Human's first insertion misses and a human recovers it.
+    let path = record("what-if.mcap", &["--seed", "4"]);
+    let p = path.to_str().expect("utf-8");
+    let same = stitch(&["replay", p, "--plan", "scripts/stitch_human.rhai"]);
+    let said = String::from_utf8_lossy(&same.stdout);
+    assert_eq!(same.status.code(), Some(0), "{said}");
+    assert!(
+        said.contains("as recorded") && said.contains("decisions: all "),
+        "{said}"
+    );
+    assert!(said.contains("human intervention: recovered"), "{said}");
+    // STITCH alone has no intervention to ask for: it fails there, and says where.
+    let other = stitch(&["replay", p, "--plan", "scripts/stitch.rhai"]);
+    let said = String::from_utf8_lossy(&other.stdout);
+    assert_eq!(other.status.code(), Some(7), "{said}");
+    let lines: Vec<&str> = said.lines().collect();
+    let at = lines
+        .iter()
+        .position(|l| l.starts_with("decisions: the first"))
+        .expect("a difference");
+    assert!(lines[at + 1].contains("intervention_requested"), "{said}");
+    assert!(lines[at + 2].contains(r#""to":"failed("#), "{said}");
+    assert!(said.contains("outcome: failed, class I"), "{said}");
 }
 
 /// `stitch run --robot ros2` against `stitch sim-node` in real time, killed with SIGKILL in
@@ -487,4 +521,8 @@ fn a_run_over_ros2_killed_mid_throw_keeps_its_journal_to_the_last_quarter_second
         "every step on the timeline, the last under way: {said}"
     );
     assert!(said.contains("under way where the journal stops"), "{said}");
+    // A dVRK's run cannot be run again; the refusal says what can be done with it.
+    let again = stitch(&["replay", fixed.to_str().expect("utf-8")]);
+    assert_eq!(again.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&again.stderr).contains("--plan OTHER.rhai"));
 }
