@@ -13,7 +13,6 @@ use std::collections::BTreeMap;
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::Ordering;
-use std::sync::mpsc::{Receiver, RecvTimeoutError, channel};
 use std::sync::{Arc, PoisonError};
 use std::time::{Duration, Instant};
 use stitch_engine::{Entry, JournalSink as Sink, Record};
@@ -245,13 +244,12 @@ impl Recorder {
         // unbounded: a run's events are few (hundreds), and a bounded channel's slots are
         // allocated up front (4,096 records: perf stat's task-clock for a mock mission went
         // from 6.5 to 6.1 ms without them).
-        let (tx, rx) = channel();
-        let shared = Arc::new(Shared::new(tx, options));
+        let shared = Arc::new(Shared::new(options));
         let owned = path.to_path_buf();
         let for_writer = Arc::clone(&shared);
         let thread = std::thread::Builder::new()
             .name("recorder".into())
-            .spawn(move || write_loop(w, channels, &rx, &owned, options, &for_writer))
+            .spawn(move || write_loop(w, channels, &owned, options, &for_writer))
             .map_err(|error| RecorderError::Io {
                 path: path.display().to_string(),
                 error,
@@ -426,7 +424,6 @@ impl Channels {
 fn write_loop(
     mut w: McapWriter,
     mut channels: Channels,
-    rx: &Receiver<Item>,
     path: &Path,
     options: RecorderOptions,
     shared: &Shared,
@@ -460,20 +457,15 @@ fn write_loop(
             bytes,
         )
     };
+    let mut pending = std::collections::VecDeque::new();
     loop {
-        let next = if options.wall_flush {
-            match rx.recv_timeout(WALL_FLUSH_EVERY.saturating_sub(wall.elapsed())) {
-                Ok(r) => Some(r),
-                Err(RecvTimeoutError::Timeout) => None,
-                Err(RecvTimeoutError::Disconnected) => break,
-            }
-        } else {
-            match rx.recv() {
-                Ok(r) => Some(r),
-                Err(_) => break,
-            }
-        };
-        let Some(item) = next else {
+        if pending.is_empty() {
+            let timeout = options
+                .wall_flush
+                .then(|| WALL_FLUSH_EVERY.saturating_sub(wall.elapsed()));
+            pending.extend(shared.queue.take(timeout));
+        }
+        let Some(item) = pending.pop_front() else {
             if dirty {
                 w.flush().map_err(&err)?;
                 stats.chunks += 1;
