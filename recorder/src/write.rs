@@ -126,26 +126,43 @@ pub struct Recorder {
 
 type McapWriter = mcap::Writer<Tracked>;
 
-/// The file behind a buffer, knowing its own position. The MCAP writer asks the position
-/// (`seek(Current(0))`) for every record it indexes; a `BufWriter<File>` answers by flushing
-/// its buffer and asking the kernel, two system calls a message (strace: 1,997 `lseek` and
-/// 1,213 `write` for a mock mission; 396 `write` and no `lseek` with this). Written by hand:
-/// no crate does just this.
+/// The file behind a buffer, knowing its own position, shared with the writer loop, which
+/// alone decides when the buffer goes to the kernel ([`deliver`]).
+///
+/// The MCAP writer asks the position (`seek(Current(0))`) for every record it indexes; a
+/// `BufWriter<File>` answers by flushing its buffer and asking the kernel, two system calls
+/// a message (strace: 1,997 `lseek` and 1,213 `write` for a mock mission). And it flushes
+/// its writer at every chunk it closes: the loop hands closed chunks to the kernel itself,
+/// at every close on a robot, and on a simulated run at transitions, at the end and within
+/// [`WALL_FLUSH_EVERY`] of wall time (370 `write`s a kinematic mission become ~45). Written
+/// by hand: no crate does just this.
 #[derive(Debug)]
 struct Tracked {
-    file: BufWriter<std::fs::File>,
+    file: Arc<std::sync::Mutex<BufWriter<std::fs::File>>>,
     pos: u64,
 }
 
 impl std::io::Write for Tracked {
     fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
-        let n = self.file.write(buf)?;
+        let n = self
+            .file
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .write(buf)?;
         self.pos += n as u64;
         Ok(n)
     }
     fn flush(&mut self) -> std::io::Result<()> {
-        self.file.flush()
+        // The loop delivers (see above); a closed chunk waits in the buffer until it does.
+        Ok(())
     }
+}
+
+/// Hand everything written so far (closed chunks; the open one is in the MCAP writer's
+/// memory) to the kernel.
+fn deliver(file: &std::sync::Mutex<BufWriter<std::fs::File>>) -> std::io::Result<()> {
+    use std::io::Write;
+    file.lock().unwrap_or_else(PoisonError::into_inner).flush()
 }
 
 impl std::io::Seek for Tracked {
@@ -181,6 +198,7 @@ impl Recorder {
             error,
         })?;
         let err = mcap_err(path);
+        let file = Arc::new(std::sync::Mutex::new(BufWriter::with_capacity(1 << 16, file)));
         let mut w = mcap::WriteOptions::new()
             .profile("ros2")
             .library(info.program.clone())
@@ -191,7 +209,7 @@ impl Recorder {
             // system calls (measured with strace).
             .disable_seeking(true)
             .create(Tracked {
-                file: BufWriter::with_capacity(1 << 16, file),
+                file: Arc::clone(&file),
                 pos: 0,
             })
             .map_err(&err)?;
@@ -240,16 +258,19 @@ impl Recorder {
             channels.id(&mut w, c.topic, c.ty, c.qos).map_err(&err)?;
         }
         w.flush().map_err(&err)?;
-        // Events are never dropped and the engine never waits on the disk, so their queue is
-        // unbounded: a run's events are few (hundreds), and a bounded channel's slots are
-        // allocated up front (4,096 records: perf stat's task-clock for a mock mission went
-        // from 6.5 to 6.1 ms without them).
+        deliver(&file).map_err(|error| RecorderError::Io {
+            path: path.display().to_string(),
+            error,
+        })?;
+        // Events and telemetry are never dropped and the engine never waits on the disk, so
+        // their queue is unbounded (a mission's messages are a few thousand); only camera
+        // frames are bounded (`Shared::admit_frame`).
         let shared = Arc::new(Shared::new(options));
         let owned = path.to_path_buf();
         let for_writer = Arc::clone(&shared);
         let thread = std::thread::Builder::new()
             .name("recorder".into())
-            .spawn(move || write_loop(w, channels, &owned, options, &for_writer))
+            .spawn(move || write_loop(w, channels, &file, &owned, options, &for_writer))
             .map_err(|error| RecorderError::Io {
                 path: path.display().to_string(),
                 error,
@@ -424,11 +445,18 @@ impl Channels {
 fn write_loop(
     mut w: McapWriter,
     mut channels: Channels,
+    file: &std::sync::Mutex<BufWriter<std::fs::File>>,
     path: &Path,
     options: RecorderOptions,
     shared: &Shared,
 ) -> Result<Stats, RecorderError> {
     let err = mcap_err(path);
+    let io = |error: std::io::Error| RecorderError::Io {
+        path: path.display().to_string(),
+        error,
+    };
+    // Closed chunks not yet handed to the kernel, and when it last had everything.
+    let (mut undelivered, mut delivered_at) = (false, Instant::now());
     let message = |why: String| RecorderError::Message {
         path: path.display().to_string(),
         why,
@@ -460,17 +488,23 @@ fn write_loop(
     let mut pending = std::collections::VecDeque::new();
     loop {
         if pending.is_empty() {
-            let timeout = options
-                .wall_flush
-                .then(|| WALL_FLUSH_EVERY.saturating_sub(wall.elapsed()));
+            let timeout = if options.wall_flush {
+                Some(WALL_FLUSH_EVERY.saturating_sub(wall.elapsed()))
+            } else {
+                undelivered.then(|| WALL_FLUSH_EVERY.saturating_sub(delivered_at.elapsed()))
+            };
             pending.extend(shared.queue.take(timeout));
         }
         let Some(item) = pending.pop_front() else {
-            if dirty {
+            // Nothing came for a while: on a robot close the open chunk (wall time), on a
+            // simulated run only hand over the closed ones (its chunks are cut in run time).
+            if dirty && options.wall_flush {
                 w.flush().map_err(&err)?;
                 stats.chunks += 1;
                 dirty = false;
             }
+            deliver(file).map_err(io)?;
+            (undelivered, delivered_at) = (false, Instant::now());
             wall = Instant::now();
             continue;
         };
@@ -641,6 +675,16 @@ fn write_loop(
             flushed_ns = flushed_ns.max(t);
             dirty = false;
             wall = Instant::now();
+            if options.wall_flush
+                || transition
+                || end
+                || delivered_at.elapsed() >= WALL_FLUSH_EVERY
+            {
+                deliver(file).map_err(io)?;
+                (undelivered, delivered_at) = (false, Instant::now());
+            } else {
+                undelivered = true;
+            }
         }
     }
     stats.frames_dropped = shared.frames_dropped.load(Ordering::Relaxed);
@@ -659,5 +703,6 @@ fn write_loop(
     })
     .map_err(&err)?;
     w.finish().map_err(&err)?;
+    deliver(file).map_err(io)?;
     Ok(stats)
 }
