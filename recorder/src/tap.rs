@@ -179,6 +179,16 @@ impl Shared {
 pub struct Tap {
     shared: Arc<Shared>,
     clock: Arc<dyn Clock>,
+    topics: Arc<Topics>,
+}
+
+/// The fixed topics, made once (a message's topic is shared, not copied).
+#[derive(Debug)]
+struct Topics {
+    rosout: Arc<str>,
+    estimate: Arc<str>,
+    needle_pose: Arc<str>,
+    needle_truth: Arc<str>,
 }
 
 impl std::fmt::Debug for Tap {
@@ -193,7 +203,16 @@ pub type Truth = Box<dyn FnMut() -> Option<Pose> + Send>;
 
 impl Tap {
     pub(crate) fn new(shared: Arc<Shared>, clock: Arc<dyn Clock>) -> Self {
-        Self { shared, clock }
+        Self {
+            shared,
+            clock,
+            topics: Arc::new(Topics {
+                rosout: "/rosout".into(),
+                estimate: "/stitch/needle/estimate".into(),
+                needle_pose: "/stitch/needle/pose".into(),
+                needle_truth: "/stitch/needle/truth".into(),
+            }),
+        }
     }
 
     fn now_ns(&self) -> u64 {
@@ -207,10 +226,10 @@ impl Tap {
         }
     }
 
-    fn put<T: Serialize>(&self, topic: &str, ty: &'static MsgType, t_ns: u64, msg: &T) {
+    fn put<T: Serialize>(&self, topic: &Arc<str>, ty: &'static MsgType, t_ns: u64, msg: &T) {
         match stitch_dvrk::encode(msg, ty.name) {
             Ok(bytes) => self.shared.send(Item::Message {
-                topic: topic.to_string(),
+                topic: Arc::clone(topic),
                 ty,
                 qos: Qos::Stream,
                 t_ns,
@@ -224,6 +243,10 @@ impl Tap {
 
     /// Record `pose` on `topic` (`geometry_msgs/PoseStamped`), now.
     pub fn pose(&self, topic: &str, pose: &Pose) {
+        self.pose_on(&Arc::from(topic), pose);
+    }
+
+    fn pose_on(&self, topic: &Arc<str>, pose: &Pose) {
         let t = self.now_ns();
         let msg = PoseStamped {
             header: self.header(t),
@@ -234,6 +257,10 @@ impl Tap {
 
     /// Record a jaw's opening, rad, on `topic` (`sensor_msgs/JointState`), now.
     pub fn jaw_angle(&self, topic: &str, joint: &str, angle_rad: f64) {
+        self.jaw_angle_on(&Arc::from(topic), joint, angle_rad);
+    }
+
+    fn jaw_angle_on(&self, topic: &Arc<str>, joint: &str, angle_rad: f64) {
         let t = self.now_ns();
         let msg = JointState {
             header: self.header(t),
@@ -276,7 +303,7 @@ impl Tap {
         };
         if let Ok(bytes) = stitch_dvrk::encode(&msg, LOG.name) {
             self.shared.send(Item::Message {
-                topic: "/rosout".into(),
+                topic: Arc::clone(&self.topics.rosout),
                 ty: &LOG,
                 qos: Qos::Stream,
                 t_ns: t,
@@ -291,7 +318,7 @@ impl Tap {
         let mut msg = state.clone();
         msg.header = self.header(t);
         self.put(
-            &format!("/{arm}/operating_state"),
+            &format!("/{arm}/operating_state").into(),
             &OPERATING_STATE,
             t,
             &msg,
@@ -304,10 +331,10 @@ impl Tap {
         let name = arm.name().to_string();
         Arc::new(TappedArm {
             topics: [
-                format!("/{name}/measured_cp"),
-                format!("/{name}/setpoint_cp"),
-                format!("/{name}/move_cp"),
-                format!("/{name}/servo_cp"),
+                format!("/{name}/measured_cp").into(),
+                format!("/{name}/setpoint_cp").into(),
+                format!("/{name}/move_cp").into(),
+                format!("/{name}/servo_cp").into(),
             ],
             name,
             arm,
@@ -319,7 +346,10 @@ impl Tap {
     pub fn jaw(&self, jaw: Arc<dyn Jaw>) -> Arc<dyn Jaw> {
         let name = jaw.name().to_string();
         Arc::new(TappedJaw {
-            topics: [format!("/{name}/measured_js"), format!("/{name}/move_jp")],
+            topics: [
+                format!("/{name}/measured_js").into(),
+                format!("/{name}/move_jp").into(),
+            ],
             joint: name.replace('/', "_"),
             name,
             jaw,
@@ -439,12 +469,12 @@ impl Tap {
                 failure: serde_json::to_string(f).unwrap_or_else(|_| f.to_string()),
             },
         };
-        self.put("/stitch/needle/estimate", &NEEDLE_ESTIMATE, t, &msg);
+        self.put(&self.topics.estimate, &NEEDLE_ESTIMATE, t, &msg);
         if let Ok(e) = result {
-            self.pose("/stitch/needle/pose", &e.pose);
+            self.pose_on(&self.topics.needle_pose, &e.pose);
         }
         if let Some(p) = truth {
-            self.pose("/stitch/needle/truth", &p);
+            self.pose_on(&self.topics.needle_truth, &p);
         }
     }
 }
@@ -472,7 +502,7 @@ fn hint_text(hint: Option<&NeedleHint>) -> String {
 struct TappedArm {
     name: String,
     /// measured_cp, setpoint_cp, move_cp, servo_cp.
-    topics: [String; 4],
+    topics: [Arc<str>; 4],
     arm: Arc<dyn Arm>,
     tap: Tap,
 }
@@ -494,23 +524,23 @@ impl Arm for TappedArm {
     fn measured_cp(&self) -> Result<Pose, RobotError> {
         let r = self.fails("measured_cp", self.arm.measured_cp());
         if let Ok(p) = &r {
-            self.tap.pose(&self.topics[0], p);
+            self.tap.pose_on(&self.topics[0], p);
         }
         r
     }
     fn setpoint_cp(&self) -> Result<Pose, RobotError> {
         let r = self.fails("setpoint_cp", self.arm.setpoint_cp());
         if let Ok(p) = &r {
-            self.tap.pose(&self.topics[1], p);
+            self.tap.pose_on(&self.topics[1], p);
         }
         r
     }
     fn move_cp(&self, goal: &Pose) -> Result<MoveHandle, RobotError> {
-        self.tap.pose(&self.topics[2], goal);
+        self.tap.pose_on(&self.topics[2], goal);
         self.fails("move_cp", self.arm.move_cp(goal))
     }
     fn servo_cp(&self, goal: &Pose) -> Result<(), RobotError> {
-        self.tap.pose(&self.topics[3], goal);
+        self.tap.pose_on(&self.topics[3], goal);
         self.fails("servo_cp", self.arm.servo_cp(goal))
     }
     fn hold(&self) -> Result<(), RobotError> {
@@ -534,7 +564,7 @@ struct TappedJaw {
     name: String,
     joint: String,
     /// measured_js, move_jp.
-    topics: [String; 2],
+    topics: [Arc<str>; 2],
     jaw: Arc<dyn Jaw>,
     tap: Tap,
 }
@@ -546,7 +576,7 @@ impl Jaw for TappedJaw {
     fn measured_jp(&self) -> Result<f64, RobotError> {
         let r = self.jaw.measured_jp();
         match &r {
-            Ok(a) => self.tap.jaw_angle(&self.topics[0], &self.joint, *a),
+            Ok(a) => self.tap.jaw_angle_on(&self.topics[0], &self.joint, *a),
             Err(e) => self
                 .tap
                 .log(Log::ERROR, &self.name, &format!("measured_jp: {e}")),
@@ -554,7 +584,7 @@ impl Jaw for TappedJaw {
         r
     }
     fn move_jp(&self, angle_rad: f64) -> Result<MoveHandle, RobotError> {
-        self.tap.jaw_angle(&self.topics[1], &self.joint, angle_rad);
+        self.tap.jaw_angle_on(&self.topics[1], &self.joint, angle_rad);
         let r = self.jaw.move_jp(angle_rad);
         if let Err(e) = &r {
             self.tap

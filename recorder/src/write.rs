@@ -27,7 +27,7 @@ pub(crate) enum Item {
     /// A message already encoded: telemetry, an estimate, a log line, a frame.
     Message {
         /// Topic.
-        topic: String,
+        topic: Arc<str>,
         /// Its type.
         ty: &'static MsgType,
         /// How it is offered.
@@ -410,7 +410,7 @@ fn event_name(entry: &Entry) -> String {
 #[derive(Debug, Default)]
 struct Channels {
     schemas: BTreeMap<&'static str, u16>,
-    channels: BTreeMap<String, (u16, u32)>,
+    channels: BTreeMap<Arc<str>, (u16, u32)>,
 }
 
 impl Channels {
@@ -437,7 +437,7 @@ impl Channels {
         let mut m = BTreeMap::new();
         m.insert("offered_qos_profiles".to_string(), qos.yaml());
         let id = w.add_channel(schema, topic, "cdr", &m)?;
-        self.channels.insert(topic.to_string(), (id, 1));
+        self.channels.insert(topic.into(), (id, 1));
         Ok((id, 0))
     }
 }
