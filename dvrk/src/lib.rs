@@ -5,11 +5,11 @@ pub mod arm;
 #[cfg(feature = "ros2")]
 pub mod camera;
 pub mod msg;
-#[cfg(feature = "ros2")]
+#[cfg(feature = "sim-node")]
 pub mod oracle;
 #[cfg(feature = "ros2")]
 pub mod ros2;
-#[cfg(feature = "ros2")]
+#[cfg(feature = "sim-node")]
 pub mod sim_node;
 
 use serde::Serialize;

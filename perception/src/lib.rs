@@ -1,6 +1,7 @@
 #![doc = include_str!("../README.md")]
 
 pub mod disparity;
+#[cfg(feature = "mock")]
 pub mod evaluate;
 pub mod fit;
 pub mod pipeline;
@@ -115,6 +116,7 @@ pub trait NeedleEstimator: Send {
     }
 }
 
+#[cfg(feature = "mock")]
 /// The mock dVRK's perception model behind the estimator trait: the true needle pose plus
 /// the noise and dropouts `stitch_sim::SensingConfig` describes, drawn from the seed's
 /// perception stream (`stitch run --perception model`).
@@ -125,6 +127,7 @@ pub struct ModelEstimator {
     rng: rand_chacha::ChaCha8Rng,
 }
 
+#[cfg(feature = "mock")]
 impl ModelEstimator {
     /// An estimator of `world`'s needle.
     pub fn new(
@@ -141,6 +144,7 @@ impl ModelEstimator {
     }
 }
 
+#[cfg(feature = "mock")]
 impl NeedleEstimator for ModelEstimator {
     fn estimate_needle(&mut self) -> Result<NeedleEstimate, PerceptionError> {
         match self.world.sense_needle(&self.config, &mut self.rng) {

@@ -1,11 +1,13 @@
 #![doc = include_str!("../README.md")]
 
+#[cfg(feature = "mock")]
 mod mock;
 mod outcome;
 mod params;
 mod robot;
 mod scripted;
 
+#[cfg(feature = "mock")]
 pub use mock::{
     MockObserver, MockPerception, PIPELINE_FRAME_TIME_S, mock_layout, mock_primitives,
     mock_primitives_observed, mock_primitives_with,

@@ -584,7 +584,8 @@ impl Jaw for TappedJaw {
         r
     }
     fn move_jp(&self, angle_rad: f64) -> Result<MoveHandle, RobotError> {
-        self.tap.jaw_angle_on(&self.topics[1], &self.joint, angle_rad);
+        self.tap
+            .jaw_angle_on(&self.topics[1], &self.joint, angle_rad);
         let r = self.jaw.move_jp(angle_rad);
         if let Err(e) = &r {
             self.tap

@@ -198,7 +198,10 @@ impl Recorder {
             error,
         })?;
         let err = mcap_err(path);
-        let file = Arc::new(std::sync::Mutex::new(BufWriter::with_capacity(1 << 16, file)));
+        let file = Arc::new(std::sync::Mutex::new(BufWriter::with_capacity(
+            1 << 16,
+            file,
+        )));
         let mut w = mcap::WriteOptions::new()
             .profile("ros2")
             .library(info.program.clone())
@@ -675,10 +678,7 @@ fn write_loop(
             flushed_ns = flushed_ns.max(t);
             dirty = false;
             wall = Instant::now();
-            if options.wall_flush
-                || transition
-                || end
-                || delivered_at.elapsed() >= WALL_FLUSH_EVERY
+            if options.wall_flush || transition || end || delivered_at.elapsed() >= WALL_FLUSH_EVERY
             {
                 deliver(file).map_err(io)?;
                 (undelivered, delivered_at) = (false, Instant::now());
