@@ -200,6 +200,9 @@ fn readers_this_project_did_not_write_decode_every_message() {
         if let Some(t) = panel["imageMode"]["imageTopic"].as_str() {
             shown.push(t.to_string());
         }
+        if let Some(a) = panel["imageMode"]["annotations"].as_object() {
+            shown.extend(a.keys().cloned());
+        }
         let mut paths: Vec<&str> = panel["paths"]
             .as_array()
             .map(|p| p.iter().filter_map(|v| v["value"].as_str()).collect())

@@ -125,6 +125,99 @@ pub struct CompressedImage {
     pub data: Vec<u8>,
 }
 
+/// `foxglove_msgs/msg/Point2`: a point in an image, pixels.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Point2 {
+    /// Column, pixels.
+    pub x: f64,
+    /// Row, pixels.
+    pub y: f64,
+}
+
+/// `foxglove_msgs/msg/Color`, 0 to 1.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Color {
+    /// Red.
+    pub r: f64,
+    /// Green.
+    pub g: f64,
+    /// Blue.
+    pub b: f64,
+    /// Opacity.
+    pub a: f64,
+}
+
+/// `foxglove_msgs/msg/CircleAnnotation`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct CircleAnnotation {
+    /// The image it belongs to.
+    pub timestamp: Time,
+    /// Centre, pixels.
+    pub position: Point2,
+    /// Diameter, pixels.
+    pub diameter: f64,
+    /// Line width, pixels.
+    pub thickness: f64,
+    /// Fill.
+    pub fill_color: Color,
+    /// Outline.
+    pub outline_color: Color,
+}
+
+/// `foxglove_msgs/msg/PointsAnnotation`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct PointsAnnotation {
+    /// The image it belongs to.
+    pub timestamp: Time,
+    /// [`PointsAnnotation::LINE_STRIP`], ...
+    #[serde(rename = "type")]
+    pub kind: u8,
+    /// The points, pixels.
+    pub points: Vec<Point2>,
+    /// Line colour.
+    pub outline_color: Color,
+    /// Per-point colours (none: `outline_color`).
+    pub outline_colors: Vec<Color>,
+    /// Fill.
+    pub fill_color: Color,
+    /// Line width, pixels.
+    pub thickness: f64,
+}
+
+impl PointsAnnotation {
+    /// Consecutive points joined.
+    pub const LINE_STRIP: u8 = 3;
+}
+
+/// `foxglove_msgs/msg/TextAnnotation`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct TextAnnotation {
+    /// The image it belongs to.
+    pub timestamp: Time,
+    /// Where, pixels.
+    pub position: Point2,
+    /// What.
+    pub text: String,
+    /// Size, pixels.
+    pub font_size: f64,
+    /// Text colour.
+    pub text_color: Color,
+    /// Background.
+    pub background_color: Color,
+}
+
+/// `foxglove_msgs/msg/ImageAnnotations`: the needle estimate (and the truth, on the mock)
+/// drawn on the left image, for Foxglove's Image panel.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct ImageAnnotations {
+    /// Circles.
+    pub circles: Vec<CircleAnnotation>,
+    /// Lines and points.
+    pub points: Vec<PointsAnnotation>,
+    /// Labels.
+    pub texts: Vec<TextAnnotation>,
+}
+
 /// A message type of a recording: its ROS 2 name and `.msg` text, and the types it uses.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct MsgType {
@@ -210,6 +303,55 @@ pub static TRANSITION: MsgType = MsgType {
     name: "stitch_msgs/msg/Transition",
     msg: include_str!("../msg/Transition.msg"),
     uses: &[&TIME],
+};
+/// `foxglove_msgs/msg/Point2`.
+pub static POINT2: MsgType = MsgType {
+    name: "foxglove_msgs/msg/Point2",
+    msg: "float64 x\nfloat64 y\n",
+    uses: &[],
+};
+/// `foxglove_msgs/msg/Color`.
+pub static COLOR: MsgType = MsgType {
+    name: "foxglove_msgs/msg/Color",
+    msg: "float64 r\nfloat64 g\nfloat64 b\nfloat64 a\n",
+    uses: &[],
+};
+/// `foxglove_msgs/msg/CircleAnnotation`.
+pub static CIRCLE_ANNOTATION: MsgType = MsgType {
+    name: "foxglove_msgs/msg/CircleAnnotation",
+    msg: "builtin_interfaces/Time timestamp\nfoxglove_msgs/Point2 position\nfloat64 diameter\n\
+          float64 thickness\nfoxglove_msgs/Color fill_color\nfoxglove_msgs/Color outline_color\n",
+    uses: &[&TIME, &POINT2, &COLOR],
+};
+/// `foxglove_msgs/msg/PointsAnnotation`.
+pub static POINTS_ANNOTATION: MsgType = MsgType {
+    name: "foxglove_msgs/msg/PointsAnnotation",
+    msg: "builtin_interfaces/Time timestamp\nuint8 UNKNOWN=0\nuint8 POINTS=1\nuint8 LINE_LOOP=2\n\
+          uint8 LINE_STRIP=3\nuint8 LINE_LIST=4\nuint8 type\nfoxglove_msgs/Point2[] points\n\
+          foxglove_msgs/Color outline_color\nfoxglove_msgs/Color[] outline_colors\n\
+          foxglove_msgs/Color fill_color\nfloat64 thickness\n",
+    uses: &[&TIME, &POINT2, &COLOR],
+};
+/// `foxglove_msgs/msg/TextAnnotation`.
+pub static TEXT_ANNOTATION: MsgType = MsgType {
+    name: "foxglove_msgs/msg/TextAnnotation",
+    msg: "builtin_interfaces/Time timestamp\nfoxglove_msgs/Point2 position\nstring text\n\
+          float64 font_size\nfoxglove_msgs/Color text_color\nfoxglove_msgs/Color background_color\n",
+    uses: &[&TIME, &POINT2, &COLOR],
+};
+/// `foxglove_msgs/msg/ImageAnnotations`.
+pub static IMAGE_ANNOTATIONS: MsgType = MsgType {
+    name: "foxglove_msgs/msg/ImageAnnotations",
+    msg: "foxglove_msgs/CircleAnnotation[] circles\nfoxglove_msgs/PointsAnnotation[] points\n\
+          foxglove_msgs/TextAnnotation[] texts\n",
+    uses: &[
+        &CIRCLE_ANNOTATION,
+        &POINTS_ANNOTATION,
+        &TEXT_ANNOTATION,
+        &TIME,
+        &POINT2,
+        &COLOR,
+    ],
 };
 /// `stitch_msgs/msg/StepEnd`.
 pub static STEP_END: MsgType = MsgType {

@@ -7,8 +7,9 @@
 //! still gives the same file, and a run with the recorder is the run without it.
 
 use crate::msgs::{
-    JOINT_STATE, LOG, Log, MsgType, NEEDLE_ESTIMATE, NeedleEstimate as EstimateMsg,
-    OPERATING_STATE, POSE_STAMPED, Qos, pose_msg, stamp_ns,
+    CircleAnnotation, Color, IMAGE_ANNOTATIONS, ImageAnnotations, JOINT_STATE, LOG, Log, MsgType,
+    NEEDLE_ESTIMATE, NeedleEstimate as EstimateMsg, OPERATING_STATE, POSE_STAMPED, Point2,
+    PointsAnnotation, Qos, TextAnnotation, pose_msg, stamp_ns,
 };
 use crate::write::Item;
 use serde::Serialize;
@@ -19,7 +20,8 @@ use stitch_dvrk::msg::{Header, JointState, OperatingState, PoseStamped};
 use stitch_perception::{NeedleEnd, NeedleEstimate, NeedleEstimator, NeedleHint, PerceptionError};
 use stitch_primitives::Rig;
 use stitch_robot::{
-    Arm, Clock, FrameObserver, Jaw, MoveHandle, Pose, RobotError, SpeedLimits, StereoFrame,
+    Arm, Clock, FrameObserver, Jaw, MoveHandle, Needle, Pose, RobotError, SpeedLimits,
+    StereoCalibration, StereoFrame,
 };
 
 /// The frame every recorded pose is in: the robot frame the primitives work in.
@@ -95,6 +97,8 @@ pub(crate) struct Shared {
     frame_period: Option<Duration>,
     /// Whether a pair with no room is dropped (a robot's run) or waited for (simulated).
     drop_frames: bool,
+    /// The recorded camera's calibration, from its first frame: to draw estimates on it.
+    calibration: Mutex<Option<StereoCalibration>>,
 }
 
 impl Shared {
@@ -104,6 +108,7 @@ impl Shared {
             frame_period: options.frame_period,
             drop_frames: options.wall_flush,
             queue: Queue::default(),
+            calibration: Mutex::new(None),
             ended: AtomicBool::new(false),
             step: Mutex::new(String::new()),
             frames_dropped: AtomicU64::new(0),
@@ -189,6 +194,7 @@ struct Topics {
     estimate: Arc<str>,
     needle_pose: Arc<str>,
     needle_truth: Arc<str>,
+    annotations: Arc<str>,
 }
 
 impl std::fmt::Debug for Tap {
@@ -211,6 +217,7 @@ impl Tap {
                 estimate: "/stitch/needle/estimate".into(),
                 needle_pose: "/stitch/needle/pose".into(),
                 needle_truth: "/stitch/needle/truth".into(),
+                annotations: "/stitch/camera/left/annotations".into(),
             }),
         }
     }
@@ -365,9 +372,19 @@ impl Tap {
         estimator: Box<dyn NeedleEstimator>,
         truth: Option<Truth>,
     ) -> Box<dyn NeedleEstimator> {
+        self.estimator_of(estimator, truth, None)
+    }
+
+    fn estimator_of(
+        &self,
+        estimator: Box<dyn NeedleEstimator>,
+        truth: Option<Truth>,
+        needle: Option<Needle>,
+    ) -> Box<dyn NeedleEstimator> {
         Box::new(TappedEstimator {
             estimator,
             truth,
+            needle,
             tap: self.clone(),
         })
     }
@@ -382,33 +399,47 @@ impl Tap {
         let drop = self.shared.drop_frames;
         let tap = self.clone();
         let last: Mutex<Option<Duration>> = Mutex::new(None);
-        Some(Arc::new(move |frame: &StereoFrame| {
-            let now = tap.clock.now();
-            {
-                let mut last = last.lock().unwrap_or_else(PoisonError::into_inner);
-                if last.is_some_and(|l| now.saturating_sub(l) < period) {
-                    return;
+        Some(Arc::new(
+            move |frame: &StereoFrame, calibration: &StereoCalibration| {
+                {
+                    let mut c = tap
+                        .shared
+                        .calibration
+                        .lock()
+                        .unwrap_or_else(PoisonError::into_inner);
+                    if c.is_none() {
+                        *c = Some(calibration.clone());
+                    }
                 }
-                *last = Some(now);
-            }
-            let size = frame.left.data.len() + frame.right.data.len();
-            if tap.shared.admit_frame(size, !drop) {
-                tap.shared.send(Item::Frame {
-                    t_ns: u64::try_from(frame.stamp.as_nanos()).unwrap_or(u64::MAX),
-                    views: Box::new([frame.left.clone(), frame.right.clone()]),
-                });
-            }
-        }))
+                let now = tap.clock.now();
+                {
+                    let mut last = last.lock().unwrap_or_else(PoisonError::into_inner);
+                    if last.is_some_and(|l| now.saturating_sub(l) < period) {
+                        return;
+                    }
+                    *last = Some(now);
+                }
+                let size = frame.left.data.len() + frame.right.data.len();
+                if tap.shared.admit_frame(size, !drop) {
+                    tap.shared.send(Item::Frame {
+                        t_ns: u64::try_from(frame.stamp.as_nanos()).unwrap_or(u64::MAX),
+                        views: Box::new([frame.left.clone(), frame.right.clone()]),
+                    });
+                }
+            },
+        ))
     }
 
-    /// Every arm, jaw and the estimator of `rig` tapped.
+    /// Every arm, jaw and the estimator of `rig` tapped; with recorded frames, each estimate
+    /// (and the truth) is also drawn on the left image (`/stitch/camera/left/annotations`,
+    /// `foxglove_msgs/ImageAnnotations`), projected with the camera's calibration.
     pub fn rig(&self, rig: Rig, truth: Option<Truth>) -> Rig {
         Rig {
             right: self.arm(rig.right),
             left: self.arm(rig.left),
             right_jaw: self.jaw(rig.right_jaw),
             left_jaw: self.jaw(rig.left_jaw),
-            estimator: self.estimator(rig.estimator, truth),
+            estimator: self.estimator_of(rig.estimator, truth, Some(rig.needle)),
             ..rig
         }
     }
@@ -439,6 +470,7 @@ impl Tap {
         hint: Option<&NeedleHint>,
         result: &Result<NeedleEstimate, PerceptionError>,
         truth: Option<Pose>,
+        needle: Option<&Needle>,
     ) {
         let t = self.now_ns();
         let step = self
@@ -476,7 +508,90 @@ impl Tap {
         if let Some(p) = truth {
             self.pose_on(&self.topics.needle_truth, &p);
         }
+        let calibration = self
+            .shared
+            .calibration
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone();
+        if let (Some(c), Some(needle), Ok(e)) = (calibration, needle, result) {
+            let image = stamp_ns(u64::try_from(e.stamp.as_nanos()).unwrap_or(u64::MAX));
+            let mut drawn = ImageAnnotations::default();
+            let amber = Color {
+                r: 1.0,
+                g: 0.69,
+                b: 0.0,
+                a: 1.0,
+            };
+            let green = Color {
+                r: 0.19,
+                g: 0.82,
+                b: 0.19,
+                a: 1.0,
+            };
+            for (pose, color, label) in [
+                (Some(e.pose), amber, format!("estimate {:.2}", e.confidence)),
+                (truth, green, "truth".to_string()),
+            ] {
+                let Some(pose) = pose else { continue };
+                let arc = project(&c, needle, &pose);
+                let tip = arc.first().copied();
+                drawn.points.push(PointsAnnotation {
+                    timestamp: image,
+                    kind: PointsAnnotation::LINE_STRIP,
+                    points: arc,
+                    outline_color: color,
+                    outline_colors: Vec::new(),
+                    fill_color: Color::default(),
+                    thickness: 2.0,
+                });
+                if let Some(tip) = tip {
+                    drawn.circles.push(CircleAnnotation {
+                        timestamp: image,
+                        position: tip,
+                        diameter: 8.0,
+                        thickness: 2.0,
+                        fill_color: Color::default(),
+                        outline_color: color,
+                    });
+                    drawn.texts.push(TextAnnotation {
+                        timestamp: image,
+                        position: Point2 {
+                            x: tip.x + 8.0,
+                            y: tip.y - 8.0,
+                        },
+                        text: label,
+                        font_size: 14.0,
+                        text_color: color,
+                        background_color: Color {
+                            r: 0.0,
+                            g: 0.0,
+                            b: 0.0,
+                            a: 0.5,
+                        },
+                    });
+                }
+            }
+            self.put(&self.topics.annotations, &IMAGE_ANNOTATIONS, t, &drawn);
+        }
     }
+}
+
+/// The needle's half circle at `pose` in the left image, tip first, pixels (points behind the
+/// camera left out).
+fn project(c: &StereoCalibration, needle: &Needle, pose: &Pose) -> Vec<Point2> {
+    const SEGMENTS: u32 = 24;
+    let to_camera = c.camera_to_robot.inverse();
+    (0..=SEGMENTS)
+        .filter_map(|i| {
+            let angle = std::f64::consts::PI * f64::from(i) / f64::from(SEGMENTS);
+            let q = to_camera * (pose * needle.point_at(angle));
+            (q.z > 1e-6).then(|| Point2 {
+                x: c.fx * q.x / q.z + c.cx,
+                y: c.fy * q.y / q.z + c.cy,
+            })
+        })
+        .collect()
 }
 
 fn hint_text(hint: Option<&NeedleHint>) -> String {
@@ -598,6 +713,8 @@ impl Jaw for TappedJaw {
 struct TappedEstimator {
     estimator: Box<dyn NeedleEstimator>,
     truth: Option<Truth>,
+    /// The needle's shape, to draw estimates with.
+    needle: Option<Needle>,
     tap: Tap,
 }
 
@@ -605,7 +722,7 @@ impl NeedleEstimator for TappedEstimator {
     fn estimate_needle(&mut self) -> Result<NeedleEstimate, PerceptionError> {
         let r = self.estimator.estimate_needle();
         let truth = self.truth.as_mut().and_then(|t| t());
-        self.tap.estimate(None, &r, truth);
+        self.tap.estimate(None, &r, truth, self.needle.as_ref());
         r
     }
     fn estimate_needle_with(
@@ -614,7 +731,7 @@ impl NeedleEstimator for TappedEstimator {
     ) -> Result<NeedleEstimate, PerceptionError> {
         let r = self.estimator.estimate_needle_with(hint);
         let truth = self.truth.as_mut().and_then(|t| t());
-        self.tap.estimate(hint, &r, truth);
+        self.tap.estimate(hint, &r, truth, self.needle.as_ref());
         r
     }
 }

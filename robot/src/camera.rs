@@ -124,8 +124,9 @@ macro_rules! forward_camera {
 }
 forward_camera!(std::sync::Arc<T>, Box<T>, &T);
 
-/// Something shown every frame a camera captures (a recorder's tap).
-pub type FrameObserver = std::sync::Arc<dyn Fn(&StereoFrame) + Send + Sync>;
+/// Something shown every frame a camera captures, with the camera's calibration (a
+/// recorder's tap).
+pub type FrameObserver = std::sync::Arc<dyn Fn(&StereoFrame, &StereoCalibration) + Send + Sync>;
 
 /// `C`, showing every frame it captures to an observer, if it has one.
 pub struct ObservedCamera<C> {
@@ -156,7 +157,7 @@ impl<C: StereoCamera> StereoCamera for ObservedCamera<C> {
     fn capture(&self) -> Result<StereoFrame, RobotError> {
         let frame = self.camera.capture()?;
         if let Some(observe) = &self.observer {
-            observe(&frame);
+            observe(&frame, self.camera.calibration());
         }
         Ok(frame)
     }

@@ -25,6 +25,9 @@ def with_mcap(path):
             if schema.name == "sensor_msgs/msg/CompressedImage":
                 assert decoded.format == "jpeg", decoded.format
                 assert bytes(decoded.data[:2]) == b"\xff\xd8", "a JPEG"
+            if schema.name == "foxglove_msgs/msg/ImageAnnotations":
+                assert decoded.points and decoded.points[0].type == 3, "a line strip"
+                assert len(decoded.points[0].points) > 2, "the needle's arc"
             if schema.name == "geometry_msgs/msg/PoseStamped":
                 q = decoded.pose.orientation
                 norm = q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w
