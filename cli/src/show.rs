@@ -122,6 +122,15 @@ pub fn timeline(plan: &Plan, report: &Report, source: &str, robot: &str, clock: 
     )
 }
 
+/// `insert`, `insert #2`, ...: a step and, after the first, which attempt.
+fn attempt_label(primitive: &str, attempt: u32) -> String {
+    if attempt > 0 {
+        format!("{primitive} #{}", attempt + 1)
+    } else {
+        primitive.to_string()
+    }
+}
+
 /// [`timeline`] of a run rebuilt from its journal (`stitch journal show`); one cut short
 /// says where it stops.
 pub fn timeline_of(run: &Rebuilt, source: &str, robot: &str, clock: &str) -> String {
@@ -144,11 +153,7 @@ pub fn timeline_of(run: &Rebuilt, source: &str, robot: &str, clock: &str) -> Str
             t.interventions
         );
         for a in &t.attempts {
-            let label = if a.attempt > 0 {
-                format!("{} #{}", a.primitive, a.attempt + 1)
-            } else {
-                a.primitive.to_string()
-            };
+            let label = attempt_label(a.primitive, a.attempt);
             let _ = writeln!(
                 s,
                 "  {:>7.1} s  {:<18} {:>5.1} s  {}",
@@ -166,11 +171,7 @@ pub fn timeline_of(run: &Rebuilt, source: &str, robot: &str, clock: &str) -> Str
             }
         }
         if let Some(u) = under_way {
-            let label = if u.attempt > 0 {
-                format!("{} #{}", u.primitive, u.attempt + 1)
-            } else {
-                u.primitive.clone()
-            };
+            let label = attempt_label(&u.primitive, u.attempt);
             let _ = writeln!(
                 s,
                 "  {:>7.1} s  {:<18}        under way where the journal stops",

@@ -52,6 +52,23 @@ fn export(path: &Path) -> String {
     String::from_utf8(out.stdout).expect("utf-8")
 }
 
+/// `stitch journal recover FROM --out TO`, which must succeed.
+fn recover(from: &Path, to: &Path) {
+    let out = stitch(&[
+        "journal",
+        "recover",
+        from.to_str().expect("utf-8"),
+        "--out",
+        to.to_str().expect("utf-8"),
+    ]);
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
 #[test]
 fn the_same_seed_gives_the_same_file_byte_for_byte_and_another_seed_another() {
     let a = std::fs::read(record("seed1-a.mcap", &["--seed", "1"])).expect("a");
@@ -95,19 +112,7 @@ fn a_file_cut_short_is_read_to_its_last_closed_chunk_and_recovered_whole() {
         assert!(n > 0 && n < lines.len(), "{n} of {} records", lines.len());
         assert_eq!(got, lines[..n].join("\n") + "\n", "a prefix of the run");
         let fixed = tmp(&format!("cut-{fraction}.recovered.mcap"));
-        let out = stitch(&[
-            "journal",
-            "recover",
-            cut.to_str().expect("utf-8"),
-            "--out",
-            fixed.to_str().expect("utf-8"),
-        ]);
-        assert_eq!(
-            out.status.code(),
-            Some(0),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
+        recover(&cut, &fixed);
         assert_eq!(export(&fixed), got, "the recovered file holds the same");
         let check = Command::new(python())
             .arg(root().join("tests/python/read_mcap.py"))
@@ -447,19 +452,7 @@ fn a_run_over_ros2_killed_mid_throw_keeps_its_journal_to_the_last_quarter_second
     let unfinished = stitch_recorder::read(&path).expect("readable as it was left");
     assert!(!unfinished.complete, "a killed run's file has no summary");
     let fixed = tmp("killed-mid-throw.recovered.mcap");
-    let out = stitch(&[
-        "journal",
-        "recover",
-        p,
-        "--out",
-        fixed.to_str().expect("utf-8"),
-    ]);
-    assert_eq!(
-        out.status.code(),
-        Some(0),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    recover(&path, &fixed);
     let got = stitch_recorder::read(&fixed).expect("recovered");
     assert!(got.complete);
     let epoch_ns: u128 = got
