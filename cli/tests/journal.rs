@@ -240,6 +240,29 @@ const FRAME_TOPICS: [&str; 2] = [
     "/stitch/camera/right/image/compressed",
 ];
 
+#[cfg(unix)]
+#[test]
+fn a_journal_that_cannot_be_written_stops_the_run_before_anything_moves() {
+    let path = tmp("full.mcap");
+    let _ = std::fs::remove_file(&path);
+    std::os::unix::fs::symlink("/dev/full", &path).expect("a link to /dev/full");
+    let out = stitch(&[
+        "run",
+        "scripts/stitch.rhai",
+        "--journal",
+        path.to_str().expect("utf-8"),
+    ]);
+    let said = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{said}");
+    assert!(said.contains("cannot record the journal to"), "{said}");
+    assert!(said.contains("No space left on device"), "{said}");
+    assert!(
+        out.stdout.is_empty(),
+        "nothing ran: {}",
+        String::from_utf8_lossy(&out.stdout)
+    );
+}
+
 #[test]
 fn journal_show_prints_the_timeline_the_run_printed_from_the_file_alone() {
     for (name, extra) in [

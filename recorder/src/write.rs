@@ -273,7 +273,13 @@ impl Recorder {
         let for_writer = Arc::clone(&shared);
         let thread = std::thread::Builder::new()
             .name("recorder".into())
-            .spawn(move || write_loop(w, channels, &file, &owned, options, &for_writer))
+            .spawn(move || {
+                let result = write_loop(w, channels, &file, &owned, options, &for_writer);
+                // Stopped, by the end or by an error: nothing more is queued, and a camera
+                // waiting for room in the frame queue is let go.
+                for_writer.end();
+                result
+            })
             .map_err(|error| RecorderError::Io {
                 path: path.display().to_string(),
                 error,
