@@ -459,8 +459,10 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
                     }
                 }
             };
+            // A recording that failed does not hide how the run went: the timeline first.
+            let mut recorded = Ok(());
             if let Some(recorder) = recorder {
-                record::finish(recorder)?;
+                recorded = record::finish(recorder);
             } else if let Some(path) = journal {
                 let file = std::fs::File::create(&path)
                     .with_context(|| format!("cannot write the journal to {}", path.display()))?;
@@ -494,6 +496,7 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
                     )
                 )?;
             }
+            recorded?;
             Ok(match report.outcome {
                 RunOutcome::Completed => exit::OK,
                 RunOutcome::Failed { .. } => exit::MISSION_FAILED,

@@ -263,6 +263,43 @@ fn a_journal_that_cannot_be_written_stops_the_run_before_anything_moves() {
     );
 }
 
+/// A disk that fills mid-run (here a file size limit): the recorder says so at once, the run
+/// goes on and prints its timeline, the exit says the journal failed, and the file is
+/// readable up to where it stopped.
+#[cfg(target_os = "linux")]
+#[test]
+fn a_recording_that_fails_mid_run_says_so_and_the_run_goes_on() {
+    let path = tmp("too-big.mcap");
+    let _ = std::fs::remove_file(&path);
+    let out = Command::new("bash")
+        .arg("-c")
+        .arg(format!(
+            "trap '' XFSZ; ulimit -f 50; exec {} run scripts/stitch_human.rhai --seed 1 \
+             --journal {}",
+            env!("CARGO_BIN_EXE_stitch"),
+            path.display()
+        ))
+        .current_dir(root())
+        .output()
+        .expect("bash runs");
+    let (said, printed) = (
+        String::from_utf8_lossy(&out.stderr),
+        String::from_utf8_lossy(&out.stdout),
+    );
+    assert_eq!(out.status.code(), Some(1), "{said}");
+    assert!(
+        said.contains("the flight recorder stopped, the run goes on unrecorded"),
+        "{said}"
+    );
+    assert!(said.contains("cannot finish the journal"), "{said}");
+    assert!(
+        printed.contains("outcome: completed"),
+        "the run went on: {printed}"
+    );
+    let got = stitch_recorder::read(&path).expect("readable");
+    assert!(!got.complete && !got.records.is_empty());
+}
+
 #[test]
 fn journal_show_prints_the_timeline_the_run_printed_from_the_file_alone() {
     for (name, extra) in [

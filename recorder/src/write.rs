@@ -275,6 +275,11 @@ impl Recorder {
             .name("recorder".into())
             .spawn(move || {
                 let result = write_loop(w, channels, &file, &owned, options, &for_writer);
+                if let Err(e) = &result {
+                    // Said at once, not only when the run ends: on a robot the run goes on,
+                    // and the person at it must know that it is no longer recorded.
+                    eprintln!("the flight recorder stopped, the run goes on unrecorded: {e}");
+                }
                 // Stopped, by the end or by an error: nothing more is queued, and a camera
                 // waiting for room in the frame queue is let go.
                 for_writer.end();
