@@ -143,8 +143,8 @@ pub fn show(file: &Path, json: bool) -> anyhow::Result<u8> {
 /// `stitch replay`.
 #[derive(Debug, clap::Args)]
 pub struct ReplayArgs {
-    /// A run recorded with `stitch run --journal FILE.mcap` on the mock or the scripted
-    /// robot.
+    /// A run recorded with `stitch run --journal FILE.mcap`: on the mock or the scripted
+    /// robot to run it again; on any robot with --plan.
     pub file: PathBuf,
     /// Keep the replay's own recording here (default: a temporary file, removed).
     #[arg(long)]
