@@ -1,6 +1,6 @@
 //! Properties of the engine for arbitrary plans (budgets up to beyond the caps) and arbitrary
-//! outcome schedules. Each property runs `STITCH_PROPTEST_CASES` cases (default 4,000; six
-//! properties make 24,000 cases per `cargo test`).
+//! outcome schedules. Each property runs `STITCH_PROPTEST_CASES` cases (default 4,000; seven
+//! properties make 28,000 cases per `cargo test`).
 //!
 //! Counts are taken from what the scripted primitives and supervisor saw, not from the
 //! engine's own bookkeeping, so a bug in the engine's counters cannot hide itself.
@@ -8,7 +8,8 @@
 use proptest::prelude::*;
 use std::collections::BTreeMap;
 use stitch_engine::{
-    AbortCause, Entry, FailureClass, InterventionResult, Plan, RunOutcome, SupervisorCommand,
+    AbortCause, Entry, FailureClass, InterventionResult, Plan, Rebuilt, RunOutcome,
+    SupervisorCommand,
 };
 use stitch_primitives::{Scripted, StepKind};
 use stitch_tests::{Run, cases, commands, interventions, plans, run_scripted, token};
@@ -201,6 +202,39 @@ proptest! {
                 .map(|c| c.token)
                 .expect("a failed step was attempted");
             prop_assert_eq!(class, expected_class(&run.plan, throw, step, token));
+        }
+    }
+
+    #[test]
+    fn a_journal_rebuilds_the_runners_own_report_and_any_prefix_of_it_rebuilds(
+        plan in plans(),
+        outcomes in prop::collection::vec(token(), 0..150),
+        cmds in commands(3),
+        ivs in interventions(),
+        cut in 0.0f64..1.0,
+    ) {
+        let run = run_scripted(plan, outcomes, cmds, ivs);
+        let records = run.report.journal.records();
+        let steps: Vec<usize> = run.plan.throws.iter().map(|t| t.steps.len()).collect();
+        // The whole journal: exactly what the runner kept (`stitch journal show` prints what
+        // `stitch run` printed).
+        let whole = Rebuilt::from_journal(records, Some(&steps)).expect("its own journal");
+        prop_assert_eq!(&whole.throws, &run.report.throws);
+        prop_assert_eq!(whole.interventions, run.report.interventions);
+        prop_assert_eq!(whole.outcome.as_ref(), Some(&run.report.outcome));
+        prop_assert!(whole.under_way.is_none());
+        // A journal cut short (a crash): still rebuilt, no outcome, its attempts a prefix of
+        // the whole run's, throw by throw.
+        let n = ((records.len() as f64 * cut) as usize).max(1);
+        if n < records.len() {
+            let part = Rebuilt::from_journal(&records[..n], Some(&steps)).expect("a prefix");
+            prop_assert!(part.outcome.is_none());
+            for (p, w) in part.throws.iter().zip(&whole.throws) {
+                prop_assert!(p.attempts.len() <= w.attempts.len());
+                for (a, b) in p.attempts.iter().zip(&w.attempts) {
+                    prop_assert_eq!((a.step, a.attempt, &a.outcome), (b.step, b.attempt, &b.outcome));
+                }
+            }
         }
     }
 }

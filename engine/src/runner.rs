@@ -200,9 +200,6 @@ impl<'a> Runner<'a> {
         let step = &throw.steps[c.step];
         let summary = &mut self.throws[c.throw];
         let attempt = summary.attempts.iter().filter(|a| a.step == c.step).count() as u32;
-        if c.retries > 0 {
-            summary.retries += 1;
-        }
         let start = self.clock.now();
         self.ctx.journal.set_now(start);
         self.ctx.journal.push(Entry::StepStart {
@@ -245,6 +242,16 @@ impl<'a> Runner<'a> {
     }
 
     fn finish(mut self) -> Report {
+        // Retries granted, as the machine journaled them. (Counting attempts whose cursor
+        // had retries also counted the re-run after a recovered intervention: a property
+        // test rebuilding reports from journals found it.)
+        for r in self.ctx.journal.records() {
+            if let Entry::Retry { throw, .. } = r.entry {
+                if let Some(t) = self.throws.get_mut(throw) {
+                    t.retries += 1;
+                }
+            }
+        }
         let mission = self.machine.inner();
         let outcome = match self.machine.state() {
             State::Completed {} => RunOutcome::Completed,
