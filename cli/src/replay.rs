@@ -215,17 +215,8 @@ pub fn replay(args: &ReplayArgs) -> anyhow::Result<u8> {
         seed,
         robot: robot.name().into(),
         mock_config: rec.attachment("mock.toml")?,
-        settings: rec
-            .meta
-            .iter()
-            .filter(|(k, _)| {
-                !matches!(
-                    k.as_str(),
-                    "program" | "plan_file" | "plan_sha256" | "seed" | "robot" | "frame_period_s"
-                )
-            })
-            .map(|(k, v)| (k.clone(), v.clone()))
-            .collect(),
+        // The recorder writes its own keys (program, plan hash, seed, ...) over these.
+        settings: rec.meta.clone(),
         files: Vec::new(),
     };
     let recorder = record::start(&out, &info, false, frames_hz)?;

@@ -397,22 +397,12 @@ fn hex(bytes: &[u8]) -> String {
     bytes.iter().map(|b| format!("{b:02x}")).collect()
 }
 
-/// A failure's kind as the journal names it (`no_progress`, `missed`, ...).
-fn event_kind(kind: &stitch_primitives::FailureKind) -> String {
-    match serde_json::to_value(kind) {
+/// The tag serde writes for `value` under `field` (an event's `event`, a failure's `kind`:
+/// `step_end`, `no_progress`, ...), as the journal names it.
+fn serde_tag<T: serde::Serialize>(value: &T, field: &str) -> String {
+    match serde_json::to_value(value) {
         Ok(serde_json::Value::Object(m)) => m
-            .get("kind")
-            .and_then(|v| v.as_str())
-            .unwrap_or("unknown")
-            .to_string(),
-        _ => "unknown".into(),
-    }
-}
-
-fn event_name(entry: &Entry) -> String {
-    match serde_json::to_value(entry) {
-        Ok(serde_json::Value::Object(m)) => m
-            .get("event")
+            .get(field)
             .and_then(|v| v.as_str())
             .unwrap_or("unknown")
             .to_string(),
@@ -597,7 +587,7 @@ fn write_loop(
                 let event = Event {
                     stamp: stamp(r.t_s),
                     seq: r.seq,
-                    event: event_name(&r.entry),
+                    event: serde_tag(&r.entry, "event"),
                     record_json: json,
                 };
                 let bytes = stitch_dvrk::encode(&event, crate::msgs::EVENT.name)
@@ -656,7 +646,7 @@ fn write_loop(
                         ok: matches!(outcome, StepOutcome::Succeeded { .. }),
                         failure: match outcome {
                             StepOutcome::Succeeded { .. } => String::new(),
-                            StepOutcome::Failed(f) => event_kind(&f.kind),
+                            StepOutcome::Failed(f) => serde_tag(&f.kind, "kind"),
                         },
                         entry_error_m: v(m.entry_error_m),
                         exit_error_m: v(m.exit_error_m),
