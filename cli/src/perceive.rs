@@ -7,7 +7,8 @@ use serde::{Deserialize, Serialize};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
-use stitch_perception::evaluate::{self, Accuracy, FrameResult, percentile};
+use stitch_eval::own as evaluate;
+use stitch_eval::{Accuracy, FrameResult, failure_kind, percentile};
 use stitch_perception::{
     JawHint, MaskRowMatcher, NeedleEnd, NeedlePipeline, PerceptionError, Rect, SemiGlobalMatcher,
     StereoMatcher,
@@ -70,9 +71,13 @@ pub enum PerceiveCommand {
         /// Seed of the evaluation set and of the image noise.
         #[arg(long, default_value_t = 1)]
         seed: u64,
-        /// Which frame of the evaluation set; without it, the mock's start.
+        /// Which frame of the evaluation set; without it, the mock's start (own set only).
         #[arg(long)]
         sample: Option<usize>,
+        /// Which evaluation set: the mock's renderer (own) or the independent ray tracer
+        /// (docs/perception.md).
+        #[arg(long, value_enum, default_value_t = EvalSet::Own)]
+        set: EvalSet,
     },
 }
 
@@ -80,9 +85,15 @@ pub enum PerceiveCommand {
 pub enum BenchCommand {
     /// Latency per stage and end to end, and accuracy on a fixed rendered set.
     Perception {
-        /// Frames in the rendered set.
+        /// Frames of the own set (the mock's renderer).
         #[arg(long, default_value_t = 500)]
         frames: usize,
+        /// Frames of the independent set (the independent ray tracer).
+        #[arg(long, default_value_t = 200)]
+        independent_frames: usize,
+        /// Which sets to measure.
+        #[arg(long, value_enum, value_delimiter = ',', default_values_t = [EvalSet::Own, EvalSet::Independent])]
+        sets: Vec<EvalSet>,
         /// Seed of the set.
         #[arg(long, default_value_t = 1)]
         seed: u64,
@@ -101,6 +112,16 @@ pub enum BenchCommand {
     /// one-way latency at 1 kHz against a 100 Hz baseline.
     #[cfg(feature = "ros2")]
     Ros2(crate::ros2::BenchRos2Args),
+}
+
+/// The two evaluation sets.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum EvalSet {
+    /// Pairs from the mock's renderer, which the pipeline was tuned on.
+    Own,
+    /// Pairs ray-traced independently: other rigs, tissue, light, needles, jaws or none.
+    Independent,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum, Serialize)]
@@ -405,9 +426,31 @@ pub fn perceive(command: PerceiveCommand) -> anyhow::Result<u8> {
             );
             Ok(crate::exit::OK)
         }
-        PerceiveCommand::Render { out, seed, sample } => {
-            std::fs::create_dir_all(&out)
-                .with_context(|| format!("cannot create {}", out.display()))?;
+        PerceiveCommand::Render {
+            out,
+            seed,
+            sample,
+            set: EvalSet::Independent,
+        } => {
+            let k = sample.unwrap_or(0);
+            let set = stitch_eval::independent::dataset(k + 1, seed, Needle::default());
+            let s = set.into_iter().nth(k).context("no such sample")?;
+            let (left, right) = stitch_eval::independent::render(&s);
+            write_rendered(
+                &out,
+                &left,
+                &right,
+                &s.calibration,
+                &s.truth,
+                s.jaw.as_ref(),
+            )
+        }
+        PerceiveCommand::Render {
+            out,
+            seed,
+            sample,
+            set: EvalSet::Own,
+        } => {
             let (renderer, world) = mock_renderer(seed)?;
             let (scene_and_truth, hint) = match sample {
                 Some(k) => {
@@ -429,41 +472,63 @@ pub fn perceive(command: PerceiveCommand) -> anyhow::Result<u8> {
             };
             let mut rng = Streams::new(seed).rng(stitch_sim::Subsystem::Perception);
             let pair = renderer.render(&scene_and_truth.0, &Pose::identity(), &mut rng);
-            write_png(&out.join("left.png"), &pair.left)?;
-            write_png(&out.join("right.png"), &pair.right)?;
-            let calib = CalibrationFile::from_calibration(renderer.calibration());
-            std::fs::write(out.join("calib.toml"), toml::to_string(&calib)?)
-                .with_context(|| format!("cannot write into {}", out.display()))?;
-            let needle = Needle::default();
-            let g = needle.in_world(&scene_and_truth.1);
-            let a = |p: stitch_robot::Point| [p.x, p.y, p.z];
-            let truth = serde_json::json!({
-                "center_m": a(g.center),
-                "normal": [g.normal.x, g.normal.y, g.normal.z],
-                "tip_m": a(g.tip),
-                "swage_m": a(g.swage),
-                "jaw_m": a(hint.jaw),
-                "jaw_holds": match hint.end {
-                    NeedleEnd::Tip => "tip",
-                    NeedleEnd::Swage => "swage",
-                },
-            });
-            std::fs::write(
-                out.join("truth.json"),
-                serde_json::to_string_pretty(&truth)? + "\n",
-            )?;
-            println!(
-                "wrote left.png, right.png, calib.toml and truth.json into {}",
-                out.display()
-            );
-            Ok(crate::exit::OK)
+            write_rendered(
+                &out,
+                &pair.left,
+                &pair.right,
+                renderer.calibration(),
+                &scene_and_truth.1,
+                Some(&hint),
+            )
         }
     }
 }
 
+/// A rendered pair, its calibration and its truth (and the holding jaw, if any) as files.
+fn write_rendered(
+    out: &Path,
+    left: &RgbImage,
+    right: &RgbImage,
+    calibration: &StereoCalibration,
+    truth: &Pose,
+    hint: Option<&JawHint>,
+) -> anyhow::Result<u8> {
+    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+    write_png(&out.join("left.png"), left)?;
+    write_png(&out.join("right.png"), right)?;
+    let calib = CalibrationFile::from_calibration(calibration);
+    std::fs::write(out.join("calib.toml"), toml::to_string(&calib)?)
+        .with_context(|| format!("cannot write into {}", out.display()))?;
+    let needle = Needle::default();
+    let g = needle.in_world(truth);
+    let a = |p: stitch_robot::Point| [p.x, p.y, p.z];
+    let mut json = serde_json::json!({
+        "center_m": a(g.center),
+        "normal": [g.normal.x, g.normal.y, g.normal.z],
+        "tip_m": a(g.tip),
+        "swage_m": a(g.swage),
+    });
+    if let Some(h) = hint {
+        json["jaw_m"] = serde_json::json!(a(h.jaw));
+        json["jaw_holds"] = serde_json::json!(match h.end {
+            NeedleEnd::Tip => "tip",
+            NeedleEnd::Swage => "swage",
+        });
+    }
+    std::fs::write(
+        out.join("truth.json"),
+        serde_json::to_string_pretty(&json)? + "\n",
+    )?;
+    println!(
+        "wrote left.png, right.png, calib.toml and truth.json into {}",
+        out.display()
+    );
+    Ok(crate::exit::OK)
+}
+
 fn failure_json(out: &mut impl Write, e: &PerceptionError) -> anyhow::Result<()> {
     let json = serde_json::json!({
-        "failure": evaluate::failure_kind(e),
+        "failure": failure_kind(e),
         "message": e.to_string(),
     });
     serde_json::to_writer_pretty(&mut *out, &json)?;
@@ -498,6 +563,7 @@ fn latency(mut v: Vec<f64>) -> Latency {
 
 #[derive(Debug, Serialize)]
 struct BenchRow {
+    set: EvalSet,
     matcher: MatcherKind,
     mode: &'static str,
     render: Latency,
@@ -516,6 +582,8 @@ pub fn bench(command: BenchCommand) -> anyhow::Result<u8> {
     #[allow(irrefutable_let_patterns)]
     let BenchCommand::Perception {
         frames,
+        independent_frames,
+        sets,
         seed,
         json,
         details,
@@ -527,43 +595,85 @@ pub fn bench(command: BenchCommand) -> anyhow::Result<u8> {
     if let Some(d) = &details {
         std::fs::create_dir_all(d).with_context(|| format!("cannot create {}", d.display()))?;
     }
-    if frames == 0 {
-        anyhow::bail!("--frames must be at least 1");
-    }
-    let (renderer, world) = mock_renderer(seed)?;
-    let samples = evaluate::dataset(frames, seed, Needle::default(), &world.phantom_view());
-    let mut rows = Vec::new();
     let started = Instant::now();
-    for &m in &matchers {
-        for (parallel, hinted) in [(false, false), (true, false), (false, true), (true, true)] {
-            let mut p =
-                NeedlePipeline::classical(renderer.calibration().clone(), Needle::default())?;
-            p.matcher = matcher(m);
-            p.parallel = parallel;
-            let results = evaluate::run(&p, &renderer, &samples, seed, hinted);
-            let r = row(m, parallel, hinted, &results);
-            if let Some(d) = &details {
-                let path = d.join(format!(
-                    "{}-{}.jsonl",
-                    m_name(m),
-                    r.mode.replace([',', ' '], "-").replace("--", "-")
-                ));
-                let mut text = String::new();
-                for (i, f) in results.iter().enumerate() {
-                    text += &serde_json::to_string(&serde_json::json!({"frame": i, "result": f}))?;
-                    text.push('\n');
-                }
-                std::fs::write(&path, text)
-                    .with_context(|| format!("cannot write {}", path.display()))?;
+    let mut rows = Vec::new();
+    let record = |set: EvalSet,
+                  rows: &mut Vec<BenchRow>,
+                  r: BenchRow,
+                  results: &[FrameResult]|
+     -> anyhow::Result<()> {
+        if let Some(d) = &details {
+            let path = d.join(format!(
+                "{}-{}-{}.jsonl",
+                set_name(set),
+                m_name(r.matcher),
+                r.mode.replace([',', ' '], "-").replace("--", "-")
+            ));
+            let mut text = String::new();
+            for (i, f) in results.iter().enumerate() {
+                text += &serde_json::to_string(&serde_json::json!({"frame": i, "result": f}))?;
+                text.push('\n');
             }
-            eprintln!(
-                "{} {}: {} frames in {:.1} s",
-                m_name(m),
-                r.mode,
-                frames,
-                started.elapsed().as_secs_f64()
-            );
-            rows.push(r);
+            std::fs::write(&path, text)
+                .with_context(|| format!("cannot write {}", path.display()))?;
+        }
+        eprintln!(
+            "{} set, {} {}: {} frames, {:.1} s so far",
+            set_name(set),
+            m_name(r.matcher),
+            r.mode,
+            results.len(),
+            started.elapsed().as_secs_f64()
+        );
+        rows.push(r);
+        Ok(())
+    };
+    if sets.contains(&EvalSet::Own) {
+        if frames == 0 {
+            anyhow::bail!("--frames must be at least 1");
+        }
+        let (renderer, world) = mock_renderer(seed)?;
+        let samples = evaluate::dataset(frames, seed, Needle::default(), &world.phantom_view());
+        for &m in &matchers {
+            for (parallel, hinted) in [(false, false), (true, false), (false, true), (true, true)] {
+                let mut p =
+                    NeedlePipeline::classical(renderer.calibration().clone(), Needle::default())?;
+                p.matcher = matcher(m);
+                p.parallel = parallel;
+                let results = evaluate::run(&p, &renderer, &samples, seed, hinted);
+                let r = row(EvalSet::Own, m, parallel, hinted, &results);
+                record(EvalSet::Own, &mut rows, r, &results)?;
+            }
+        }
+    }
+    if sets.contains(&EvalSet::Independent) {
+        if independent_frames == 0 {
+            anyhow::bail!("--independent-frames must be at least 1");
+        }
+        let samples =
+            stitch_eval::independent::dataset(independent_frames, seed, Needle::default());
+        // Each pair is rendered once and estimated in every mode (rendering costs more than
+        // estimating); one thread, full frame and with the jaw known where there is one.
+        let makers: Vec<Box<stitch_eval::independent::MakePipeline>> = matchers
+            .iter()
+            .map(|&m| -> Box<stitch_eval::independent::MakePipeline> {
+                Box::new(move |c: &StereoCalibration| {
+                    let mut p = NeedlePipeline::classical(c.clone(), Needle::default())?;
+                    p.matcher = matcher(m);
+                    Ok(p)
+                })
+            })
+            .collect();
+        let mut modes: Vec<(bool, &stitch_eval::independent::MakePipeline)> = Vec::new();
+        for mk in &makers {
+            modes.push((false, mk.as_ref()));
+            modes.push((true, mk.as_ref()));
+        }
+        let all = stitch_eval::independent::run(&samples, &modes, seed);
+        for (k, results) in all.iter().enumerate() {
+            let m = matchers[k / 2];
+            let r = row(EvalSet::Independent, m, false, k % 2 == 1, results);
+            record(EvalSet::Independent, &mut rows, r, results)?;
         }
     }
     let mut out = std::io::stdout().lock();
@@ -571,9 +681,16 @@ pub fn bench(command: BenchCommand) -> anyhow::Result<u8> {
         serde_json::to_writer_pretty(&mut out, &rows)?;
         writeln!(out)?;
     } else {
-        write!(out, "{}", tables(&rows, frames, seed))?;
+        write!(out, "{}", tables(&rows, frames, independent_frames, seed))?;
     }
     Ok(crate::exit::OK)
+}
+
+fn set_name(s: EvalSet) -> &'static str {
+    match s {
+        EvalSet::Own => "own",
+        EvalSet::Independent => "independent",
+    }
 }
 
 fn m_name(m: MatcherKind) -> &'static str {
@@ -583,7 +700,13 @@ fn m_name(m: MatcherKind) -> &'static str {
     }
 }
 
-fn row(m: MatcherKind, parallel: bool, hinted: bool, results: &[FrameResult]) -> BenchRow {
+fn row(
+    set: EvalSet,
+    m: MatcherKind,
+    parallel: bool,
+    hinted: bool,
+    results: &[FrameResult],
+) -> BenchRow {
     let secs = |f: &dyn Fn(&FrameResult) -> Duration| -> Vec<f64> {
         results
             .iter()
@@ -591,15 +714,20 @@ fn row(m: MatcherKind, parallel: bool, hinted: bool, results: &[FrameResult]) ->
             .map(|r| f(r).as_secs_f64())
             .collect()
     };
-    let by_jaw = ["right", "left"]
+    let jaws: &[&str] = match set {
+        EvalSet::Own => &["right", "left"],
+        EvalSet::Independent => &["none", "tip", "swage"],
+    };
+    let by_jaw = jaws
         .iter()
         .map(|j| {
             let sub: Vec<FrameResult> = results.iter().filter(|r| r.jaw == *j).cloned().collect();
-            (j.to_string(), evaluate::accuracy(&sub))
+            (j.to_string(), stitch_eval::accuracy(&sub))
         })
         .collect();
     let over: Vec<FrameResult> = results.iter().filter(|r| r.thread_over).cloned().collect();
     BenchRow {
+        set,
         matcher: m,
         mode: match (parallel, hinted) {
             (false, false) => "full frame, 1 thread",
@@ -613,17 +741,37 @@ fn row(m: MatcherKind, parallel: bool, hinted: bool, results: &[FrameResult]) ->
         cloud: latency(secs(&|r| r.times.cloud)),
         fit: latency(secs(&|r| r.times.fit)),
         total: latency(results.iter().map(|r| r.total.as_secs_f64()).collect()),
-        accuracy: evaluate::accuracy(results),
+        accuracy: stitch_eval::accuracy(results),
         by_jaw,
-        thread_over: evaluate::accuracy(&over),
+        thread_over: stitch_eval::accuracy(&over),
     }
 }
 
-fn tables(rows: &[BenchRow], frames: usize, seed: u64) -> String {
+fn tables(rows: &[BenchRow], frames: usize, independent_frames: usize, seed: u64) -> String {
     let mut s = format!(
-        "Stereo needle pipeline on {frames} rendered 1280×960 pairs (seed {seed}), {} cores\n\nLatency per stereo pair, ms (median / p95; stage times over frames with an estimate)\n\n",
+        "Stereo needle pipeline, seed {seed}, {} cores\n",
         std::thread::available_parallelism().map_or(1, |n| n.get())
     );
+    for set in [EvalSet::Own, EvalSet::Independent] {
+        let rows: Vec<&BenchRow> = rows.iter().filter(|r| r.set == set).collect();
+        if rows.is_empty() {
+            continue;
+        }
+        s += &match set {
+            EvalSet::Own => format!(
+                "\n## Own set: {frames} pairs from the mock's renderer (1280×960, the set the pipeline was tuned on)\n"
+            ),
+            EvalSet::Independent => format!(
+                "\n## Independent set: {independent_frames} ray-traced pairs (other rigs 1024×768 to 1920×1080, tissue, light, needles; a jaw in about half; \"jaw known\" gives the hint where there is a jaw)\n"
+            ),
+        };
+        s += &set_tables(&rows);
+    }
+    s
+}
+
+fn set_tables(rows: &[&BenchRow]) -> String {
+    let mut s = "\nLatency per stereo pair, ms (median / p95; stage times over frames with an estimate; render: the set's renderer)\n\n".to_string();
     s += "| matcher | mode | render | segment | disparity | cloud | fit | end to end |\n|---|---|---|---|---|---|---|---|\n";
     let l = |x: &Latency| format!("{:.2} / {:.2}", x.median_ms, x.p95_ms);
     for r in rows {

@@ -13,7 +13,7 @@ use stitch_dvrk::oracle::{Answer, Call, Oracle};
 use stitch_dvrk::ros2::Ros2Options;
 use stitch_dvrk::sim_node::{SimNodeOptions, WireFault};
 use stitch_engine::{Loaded, Report, Runner};
-use stitch_perception::evaluate::percentile;
+use stitch_eval::percentile;
 use stitch_perception::{
     NeedleEstimate, NeedleEstimator, NeedlePipeline, PerceptionError, PipelineEstimator,
 };

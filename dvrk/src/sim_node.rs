@@ -27,7 +27,8 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant};
-use stitch_perception::{ModelEstimator, NeedleEstimator};
+use stitch_perception::NeedleEstimator;
+use stitch_primitives::ModelEstimator;
 use stitch_primitives::{MockObserver, Observer, PIPELINE_FRAME_TIME_S};
 use stitch_robot::{Arm, Clock, Jaw, Pose, SimClock, StereoCalibration, StereoCamera};
 use stitch_sim::{

@@ -1,8 +1,6 @@
 #![doc = include_str!("../README.md")]
 
 pub mod disparity;
-#[cfg(feature = "mock")]
-pub mod evaluate;
 pub mod fit;
 pub mod pipeline;
 pub mod segment;
@@ -113,50 +111,5 @@ pub trait NeedleEstimator: Send {
     ) -> Result<NeedleEstimate, PerceptionError> {
         let _ = hint;
         self.estimate_needle()
-    }
-}
-
-#[cfg(feature = "mock")]
-/// The mock dVRK's perception model behind the estimator trait: the true needle pose plus
-/// the noise and dropouts `stitch_sim::SensingConfig` describes, drawn from the seed's
-/// perception stream (`stitch run --perception model`).
-#[derive(Debug)]
-pub struct ModelEstimator {
-    world: stitch_sim::MockDvrk,
-    config: stitch_sim::SensingConfig,
-    rng: rand_chacha::ChaCha8Rng,
-}
-
-#[cfg(feature = "mock")]
-impl ModelEstimator {
-    /// An estimator of `world`'s needle.
-    pub fn new(
-        world: stitch_sim::MockDvrk,
-        config: stitch_sim::SensingConfig,
-        streams: stitch_sim::Streams,
-    ) -> Result<Self, stitch_sim::SimError> {
-        config.validate()?;
-        Ok(Self {
-            world,
-            config,
-            rng: streams.rng(stitch_sim::Subsystem::Perception),
-        })
-    }
-}
-
-#[cfg(feature = "mock")]
-impl NeedleEstimator for ModelEstimator {
-    fn estimate_needle(&mut self) -> Result<NeedleEstimate, PerceptionError> {
-        match self.world.sense_needle(&self.config, &mut self.rng) {
-            Ok((pose, stamp)) => Ok(NeedleEstimate {
-                pose,
-                confidence: 1.0,
-                stamp,
-            }),
-            Err(stitch_sim::SensingFailure::NotInView) => Err(PerceptionError::NotFound),
-            Err(stitch_sim::SensingFailure::Dropout { by_thread }) => {
-                Err(PerceptionError::Occluded { by_thread })
-            }
-        }
     }
 }

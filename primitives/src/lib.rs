@@ -9,8 +9,8 @@ mod scripted;
 
 #[cfg(feature = "mock")]
 pub use mock::{
-    MockObserver, MockPerception, PIPELINE_FRAME_TIME_S, mock_layout, mock_primitives,
-    mock_primitives_observed, mock_primitives_with,
+    MockObserver, MockPerception, ModelEstimator, PIPELINE_FRAME_TIME_S, mock_layout,
+    mock_primitives, mock_primitives_observed, mock_primitives_with,
 };
 pub use outcome::{Failure, FailureKind, Measurements, StepOutcome};
 pub use params::*;

@@ -4,11 +4,11 @@
 use crate::{FailureKind, Layout, Observer, PassObservation, Rig, RobotPrimitives};
 use std::sync::Arc;
 use std::time::Duration;
-use stitch_perception::{ModelEstimator, NeedleEstimator, NeedlePipeline, PipelineEstimator};
+use stitch_perception::{NeedleEstimator, NeedlePipeline, PipelineEstimator};
 use stitch_robot::{FrameObserver, ObservedCamera, Point, SimClock, WoundPoint};
 use stitch_sim::{
-    CameraConfig, MockCamera, MockDvrk, SceneConfig, SensingConfig, Side, SimError, StereoRenderer,
-    Streams, Subsystem,
+    CameraConfig, MockCamera, MockDvrk, SceneConfig, SensingConfig, SensingFailure, Side, SimError,
+    StereoRenderer, Streams, Subsystem,
 };
 
 /// The mock's ground truth as an [`Observer`].
@@ -65,6 +65,46 @@ impl Observer for MockObserver {
 
     fn thread_left_m(&mut self) -> f64 {
         self.world.thread().remaining_m()
+    }
+}
+
+/// The mock dVRK's perception model behind the estimator trait: the true needle pose plus
+/// the noise and dropouts `SensingConfig` describes, drawn from the seed's
+/// perception stream (`stitch run --perception model`).
+#[derive(Debug)]
+pub struct ModelEstimator {
+    world: MockDvrk,
+    config: SensingConfig,
+    rng: rand_chacha::ChaCha8Rng,
+}
+
+impl ModelEstimator {
+    /// An estimator of `world`'s needle.
+    pub fn new(world: MockDvrk, config: SensingConfig, streams: Streams) -> Result<Self, SimError> {
+        config.validate()?;
+        Ok(Self {
+            world,
+            config,
+            rng: streams.rng(Subsystem::Perception),
+        })
+    }
+}
+
+impl NeedleEstimator for ModelEstimator {
+    fn estimate_needle(
+        &mut self,
+    ) -> Result<stitch_perception::NeedleEstimate, stitch_perception::PerceptionError> {
+        match self.world.sense_needle(&self.config, &mut self.rng) {
+            Ok((pose, stamp)) => Ok(stitch_perception::NeedleEstimate {
+                pose,
+                confidence: 1.0,
+                stamp,
+            }),
+            Err(SensingFailure::NotInView) => Err(stitch_perception::PerceptionError::NotFound),
+            Err(SensingFailure::Dropout { by_thread }) => {
+                Err(stitch_perception::PerceptionError::Occluded { by_thread })
+            }
+        }
     }
 }
 

@@ -5,7 +5,8 @@ use proptest::prelude::*;
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use rand_chacha::rand_core::SeedableRng;
-use stitch_perception::evaluate::{self, accuracy};
+use stitch_eval::accuracy;
+use stitch_eval::own as evaluate;
 use stitch_perception::fit::{RansacParams, plane_basis, ransac_circle, ransac_plane};
 use stitch_perception::{NeedlePipeline, PerceptionError};
 use stitch_robot::{Needle, Point, Pose, SimClock, Vector};
@@ -57,7 +58,7 @@ fn rendered_needles_are_found_within_a_millimetre_or_refused() {
     );
     // The same seed, the same results.
     let again = evaluate::run(&p, &r, &samples, 7, true);
-    let errs = |v: &[evaluate::FrameResult]| -> Vec<_> {
+    let errs = |v: &[stitch_eval::FrameResult]| -> Vec<_> {
         v.iter().map(|f| (f.error, f.failure.clone())).collect()
     };
     assert_eq!(errs(&held), errs(&again));

@@ -1,0 +1,7 @@
+#![doc = include_str!("../README.md")]
+
+pub mod independent;
+pub mod own;
+mod report;
+
+pub use report::{Accuracy, FrameResult, accuracy, failure_kind, percentile};
