@@ -104,6 +104,10 @@ pub enum BenchCommand {
         /// directory, one file per matcher and mode.
         #[arg(long)]
         details: Option<PathBuf>,
+        /// Keep the independent set's rendered pairs in this directory (raw RGB, about 9 MB
+        /// a pair) and reuse them on later runs: the ray tracer takes a second or two a pair.
+        #[arg(long)]
+        render_cache: Option<PathBuf>,
         /// Matchers to measure (the default pipeline uses sgm).
         #[arg(long, value_enum, value_delimiter = ',', default_values_t = [MatcherKind::Sgm, MatcherKind::MaskRow])]
         matchers: Vec<MatcherKind>,
@@ -587,6 +591,7 @@ pub fn bench(command: BenchCommand) -> anyhow::Result<u8> {
         seed,
         json,
         details,
+        render_cache,
         matchers,
     } = command
     else {
@@ -669,7 +674,7 @@ pub fn bench(command: BenchCommand) -> anyhow::Result<u8> {
             modes.push((false, mk.as_ref()));
             modes.push((true, mk.as_ref()));
         }
-        let all = stitch_eval::independent::run(&samples, &modes, seed);
+        let all = stitch_eval::independent::run(&samples, &modes, seed, render_cache.as_deref());
         for (k, results) in all.iter().enumerate() {
             let m = matchers[k / 2];
             let r = row(EvalSet::Independent, m, false, k % 2 == 1, results);

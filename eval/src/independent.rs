@@ -517,12 +517,8 @@ fn build(
         .chunks(GROUP)
         .map(|run| {
             let n = (2 * run.len()) as f64;
-            let centre = Point::from(
-                run.iter()
-                    .map(|c| c.a.coords + c.b.coords)
-                    .sum::<Vector>()
-                    / n,
-            );
+            let centre =
+                Point::from(run.iter().map(|c| c.a.coords + c.b.coords).sum::<Vector>() / n);
             let r = run
                 .iter()
                 .map(|c| (c.a - centre).norm().max((c.b - centre).norm()) + c.r)
@@ -1055,27 +1051,30 @@ impl Scene {
         // Rows on all cores (each pixel is a pure function of the scene: the order cannot
         // change the image).
         use rayon::prelude::*;
-        linear.par_chunks_mut(w as usize).enumerate().for_each(|(y, row)| {
-            let y = y as u32;
-            for x in 0..w {
-                let k = ((y / TILE) * tw + x / TILE) as usize;
-                let objects = needle_tiles[k] || !tiles[k].is_empty();
-                let samples: &[(f64, f64)] = if objects { &jitter } else { &[(0.5, 0.5)] };
-                let mut acc = [0.0; 3];
-                for &(jx, jy) in samples {
-                    let d = ray(f64::from(x) + jx, f64::from(y) + jy);
-                    let c = match self.cast(&eye, &d, &tiles[k], needle_tiles[k]) {
-                        Some((hit, t)) => self.shade(&eye, &d, hit, t, near[k]),
-                        None => [0.0; 3],
-                    };
-                    for i in 0..3 {
-                        acc[i] += c[i];
+        linear
+            .par_chunks_mut(w as usize)
+            .enumerate()
+            .for_each(|(y, row)| {
+                let y = y as u32;
+                for x in 0..w {
+                    let k = ((y / TILE) * tw + x / TILE) as usize;
+                    let objects = needle_tiles[k] || !tiles[k].is_empty();
+                    let samples: &[(f64, f64)] = if objects { &jitter } else { &[(0.5, 0.5)] };
+                    let mut acc = [0.0; 3];
+                    for &(jx, jy) in samples {
+                        let d = ray(f64::from(x) + jx, f64::from(y) + jy);
+                        let c = match self.cast(&eye, &d, &tiles[k], needle_tiles[k]) {
+                            Some((hit, t)) => self.shade(&eye, &d, hit, t, near[k]),
+                            None => [0.0; 3],
+                        };
+                        for i in 0..3 {
+                            acc[i] += c[i];
+                        }
                     }
+                    let n = samples.len() as f64;
+                    row[x as usize] = acc.map(|a| a / n);
                 }
-                let n = samples.len() as f64;
-                row[x as usize] = acc.map(|a| a / n);
-            }
-        });
+            });
         self.develop(&linear, w, h, calib, rng)
     }
 
@@ -1185,25 +1184,64 @@ pub fn render(sample: &Sample) -> (RgbImage, RgbImage) {
     (left, right)
 }
 
+/// The renderer's version: part of a cached pair's file name, raised whenever a change to
+/// the renderer changes its images, so a cache never serves pairs an older renderer made.
+pub const RENDER_VERSION: u32 = 2;
+
+/// A sample's pair from `cache` if it holds it, else rendered (and written there when
+/// `cache` is given; a pair that cannot be written is still returned). The files are raw
+/// 8-bit RGB, named by the renderer's version, the scene's seed and the size.
+pub fn render_cached(sample: &Sample, cache: Option<&std::path::Path>) -> (RgbImage, RgbImage) {
+    let Some(dir) = cache else {
+        return render(sample);
+    };
+    let (w, h) = (sample.calibration.width, sample.calibration.height);
+    let name = |side: &str| {
+        dir.join(format!(
+            "v{RENDER_VERSION}-{:016x}-{w}x{h}-{side}.rgb",
+            sample.scene.seed
+        ))
+    };
+    let read = |side: &str| -> Option<RgbImage> {
+        let data = std::fs::read(name(side)).ok()?;
+        (data.len() == (w * h * 3) as usize).then_some(RgbImage {
+            width: w,
+            height: h,
+            data,
+        })
+    };
+    if let (Some(l), Some(r)) = (read("left"), read("right")) {
+        return (l, r);
+    }
+    let (l, r) = render(sample);
+    // A cache is an optimisation: a full disk only costs the next run the render.
+    let _ = std::fs::create_dir_all(dir)
+        .and_then(|()| std::fs::write(name("left"), &l.data))
+        .and_then(|()| std::fs::write(name("right"), &r.data));
+    (l, r)
+}
+
 /// Builds a pipeline for a rig (a mode of `run`).
 pub type MakePipeline =
     dyn Fn(&StereoCalibration) -> Result<NeedlePipeline, PerceptionError> + Sync;
 
 /// Estimate every sample with each pipeline `make` builds for its rig (one per mode), blind
-/// or with the sample's jaw hint when there is a jaw. Pairs are rendered two at a time on
+/// or with the sample's jaw hint when there is a jaw; pairs come from `cache` where it holds
+/// them (see [`render_cached`]). Pairs are rendered two at a time on
 /// the machine's cores, then estimated one after the other (the latencies are one core's).
 /// Returns one list of results per mode, in sample order.
 pub fn run(
     samples: &[Sample],
     modes: &[(bool, &MakePipeline)],
     seed: u64,
+    cache: Option<&std::path::Path>,
 ) -> Vec<Vec<FrameResult>> {
     let mut results: Vec<Vec<FrameResult>> = vec![Vec::with_capacity(samples.len()); modes.len()];
     for (c, chunk) in samples.chunks(2).enumerate() {
         let started = Instant::now();
         let pairs: Vec<(RgbImage, RgbImage)> = {
             use rayon::prelude::*;
-            chunk.par_iter().map(render).collect()
+            chunk.par_iter().map(|s| render_cached(s, cache)).collect()
         };
         let render_each = started.elapsed() / chunk.len().max(1) as u32;
         for (k, (s, (left, right))) in chunk.iter().zip(&pairs).enumerate() {
@@ -1220,6 +1258,7 @@ pub fn run(
                     Ok((o, needle)) => FrameResult {
                         error: Some(PoseError::between(&needle, &o.pose, &s.truth)),
                         failure: None,
+                        message: None,
                         confidence: o.confidence,
                         arc_deg: o.diagnostics.arc_rad.to_degrees(),
                         times: o.diagnostics.times,
@@ -1231,6 +1270,7 @@ pub fn run(
                     Err(e) => FrameResult {
                         error: None,
                         failure: Some(failure_kind(&e).to_string()),
+                        message: Some(e.to_string()),
                         confidence: 0.0,
                         arc_deg: 0.0,
                         times: Default::default(),

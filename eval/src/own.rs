@@ -152,15 +152,17 @@ pub fn run(
                 ),
                 Err(e) => (
                     None,
-                    Some(failure_kind(&e).to_string()),
+                    Some((failure_kind(&e).to_string(), e.to_string())),
                     Default::default(),
                     0.0,
                     0.0,
                 ),
             };
+            let (failure, message) = failure.unzip();
             FrameResult {
                 error,
                 failure,
+                message,
                 confidence,
                 arc_deg,
                 times,

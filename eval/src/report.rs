@@ -12,6 +12,9 @@ pub struct FrameResult {
     pub error: Option<PoseError>,
     /// The typed failure, if there was none.
     pub failure: Option<String>,
+    /// The failure's message (what the pipeline said), if there was one.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub message: Option<String>,
     /// The estimate's confidence and the arc it saw, degrees (0 without an estimate).
     pub confidence: f64,
     /// See `confidence`.
