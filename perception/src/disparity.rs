@@ -256,7 +256,7 @@ pub struct SemiGlobalMatcher {
     pub uniqueness: f32,
     /// Most left-right disagreement, pixels.
     pub lr_max_diff: f32,
-    /// Refuse regions needing more cost cells than this (width × height × disparities).
+    /// Refuse to match more cost cells than this (matched pixels × disparities).
     pub max_cells: usize,
     /// Match only pixels within this many of the needle mask (`None`: the whole region).
     pub around_mask_px: Option<u32>,
@@ -378,15 +378,6 @@ impl StereoMatcher for SemiGlobalMatcher {
         let (w, h) = (lroi.width() as usize, lroi.height() as usize);
         let dmin = input.min_disparity as usize;
         let nd = input.max_disparity.saturating_sub(input.min_disparity) as usize + 1;
-        if w * h * nd > self.max_cells {
-            return Err(PerceptionError::Config {
-                message: format!(
-                    "semi-global matching over {w}×{h} pixels and {nd} disparities needs {} cost cells, more than the limit {}; give a smaller region or disparity range",
-                    w * h * nd,
-                    self.max_cells
-                ),
-            });
-        }
         // The right image's strip the region can match: x − d for every d.
         let rx0 = (lroi.x0 as usize).saturating_sub(dmin + nd - 1);
         let rx1 = (lroi.x1 as usize).saturating_sub(dmin).max(rx0 + 1);
@@ -411,6 +402,16 @@ impl StereoMatcher for SemiGlobalMatcher {
                 index[i] = n as u32;
                 n += 1;
             }
+        }
+        // The cost volume holds the matched pixels only.
+        if n * nd > self.max_cells {
+            return Err(PerceptionError::Config {
+                message: format!(
+                    "semi-global matching of {n} pixels (of a {w}×{h} region) over {nd} disparities needs {} cost cells, more than the limit {}; give a smaller region or disparity range",
+                    n * nd,
+                    self.max_cells
+                ),
+            });
         }
         // Matching cost C(p, d): Hamming distance of the censuses (24 = no match).
         let mut cost = vec![24u8; n * nd];

@@ -406,25 +406,30 @@ impl NeedlePipeline {
             return Ok((lm, rm, range));
         }
         let hl = within.unwrap_or(full);
-        let hr = full;
-        let locate_and_segment = |img: &stitch_robot::RgbImage, within: Rect| {
-            seg.locate(img, within).map(|roi| seg.segment(img, roi))
-        };
-        let (lm, rm) = if self.parallel {
-            rayon::join(
-                || locate_and_segment(left, hl),
-                || locate_and_segment(right, hr),
-            )
-        } else {
-            (locate_and_segment(left, hl), locate_and_segment(right, hr))
-        };
-        let lm = lm.ok_or(PerceptionError::NoMask {
+        // The left view is searched where asked; the right view only where the same needle
+        // can appear: the left region's rows (rectified views), shifted by the calibrated
+        // disparities — another bright thing elsewhere in the right view is not a candidate.
+        let [cmin, cmax] = self.calibrated_range();
+        let lroi = seg.locate(left, hl).ok_or(PerceptionError::NoMask {
             view: "left".into(),
         })?;
-        let rm = rm.ok_or(PerceptionError::NoMask {
+        let hr = Rect {
+            x0: lroi.x0.saturating_sub(cmax),
+            x1: lroi
+                .x1
+                .saturating_sub(cmin)
+                .max(lroi.x0.saturating_sub(cmax) + 1),
+            ..lroi
+        }
+        .clipped(c.width, c.height);
+        let rroi = seg.locate(right, hr).ok_or(PerceptionError::NoMask {
             view: "right".into(),
         })?;
-        let [cmin, cmax] = self.calibrated_range();
+        let (lm, rm) = if self.parallel {
+            rayon::join(|| seg.segment(left, lroi), || seg.segment(right, rroi))
+        } else {
+            (seg.segment(left, lroi), seg.segment(right, rroi))
+        };
         // The two regions frame the same needle: their left edges' offset and their right
         // edges' offset are disparities of its extreme points; the needle's own depth spread
         // is within the margin of them.

@@ -135,6 +135,16 @@ pub struct ColorSegmenter {
     /// Groups of hits at most this far from the largest join it (parts of one needle split
     /// by an occluder), pixels.
     pub join_px: u32,
+    /// Grid cells this near each other belong to one group (1: touching, 8-neighbours;
+    /// 2: one empty cell bridged).
+    pub bridge_cells: u32,
+    /// Most cells a group may fill of its extent squared and still be taken for the
+    /// needle: a half circle of wire d and radius R fills about 1.6·d/(2R) whatever its
+    /// distance (0.05 for the default needle); glare on wet tissue makes fuller blobs.
+    pub max_fill: f32,
+    /// Needle-mask components smaller than this are specks (glints, noise) and dropped,
+    /// pixels.
+    pub min_component_px: u32,
 }
 
 impl Default for ColorSegmenter {
@@ -150,6 +160,9 @@ impl Default for ColorSegmenter {
             min_hits: 6,
             margin_px: 24,
             join_px: 90,
+            bridge_cells: 2,
+            max_fill: 0.15,
+            min_component_px: 10,
         }
     }
 }
@@ -196,52 +209,38 @@ impl Segmenter for ColorSegmenter {
         if hits < self.min_hits {
             return None;
         }
-        // Connected groups of hits (8-neighbours, one empty cell bridged).
-        let mut groups: Vec<(usize, [usize; 4])> = Vec::new(); // (count, [gx0, gy0, gx1, gy1])
-        let mut stack = Vec::new();
-        for start in 0..grid.len() {
-            if grid[start] != u32::MAX {
-                continue;
-            }
-            let label = groups.len() as u32 + 1;
-            grid[start] = label;
-            stack.push(start);
-            let mut g = (0usize, [usize::MAX, usize::MAX, 0, 0]);
-            while let Some(i) = stack.pop() {
-                let (x, y) = (i % gw, i / gw);
-                g.0 += 1;
-                g.1 = [g.1[0].min(x), g.1[1].min(y), g.1[2].max(x), g.1[3].max(y)];
-                for dy in -2i64..=2 {
-                    for dx in -2i64..=2 {
-                        let (nx, ny) = (x as i64 + dx, y as i64 + dy);
-                        if nx < 0 || ny < 0 || nx >= gw as i64 || ny >= gh as i64 {
-                            continue;
-                        }
-                        let j = ny as usize * gw + nx as usize;
-                        if grid[j] == u32::MAX {
-                            grid[j] = label;
-                            stack.push(j);
-                        }
-                    }
-                }
-            }
-            groups.push(g);
-        }
-        let best = groups.iter().max_by_key(|g| g.0)?;
-        if best.0 < self.min_hits {
+        let groups = label_groups(&mut grid, gw, gh, self.bridge_cells as i64);
+        // The needle is the largest group that is thin for its extent: a half circle of
+        // wire covers a small share of its extent squared, whatever its distance, while the
+        // glare on wet tissue makes blobs. Groups too small to have a shape count as thin.
+        let thin = |g: &Group| g.extent() < MIN_SHAPED_CELLS || g.fill() <= self.max_fill;
+        let best = groups
+            .iter()
+            .filter(|g| g.count >= self.min_hits && thin(g))
+            .max_by_key(|g| g.count)
+            .or_else(|| groups.iter().max_by_key(|g| g.count))?;
+        if best.count < self.min_hits {
             return None;
         }
-        let join = (self.join_px / s) as usize;
-        let mut b = best.1;
+        // Pieces of the same needle split by an occluder (the thread, a jaw): groups near
+        // it, within `join_px` or half its extent, that are thin or small beside it (a short
+        // piece of wire has no shape to judge; a blob of glare as big is not joined).
+        let join = ((self.join_px / s) as usize).max(best.extent() / 2);
+        let joinable = |g: &Group| thin(g) || g.count * 4 <= best.count;
+        let mut b = best.bbox;
         for g in &groups {
-            let gap_x = g.1[0].saturating_sub(b[2]).max(b[0].saturating_sub(g.1[2]));
-            let gap_y = g.1[1].saturating_sub(b[3]).max(b[1].saturating_sub(g.1[3]));
-            if g.0 >= 2 && gap_x <= join && gap_y <= join {
+            let gap_x = g.bbox[0]
+                .saturating_sub(b[2])
+                .max(b[0].saturating_sub(g.bbox[2]));
+            let gap_y = g.bbox[1]
+                .saturating_sub(b[3])
+                .max(b[1].saturating_sub(g.bbox[3]));
+            if g.count >= 2 && joinable(g) && gap_x <= join && gap_y <= join {
                 b = [
-                    b[0].min(g.1[0]),
-                    b[1].min(g.1[1]),
-                    b[2].max(g.1[2]),
-                    b[3].max(g.1[3]),
+                    b[0].min(g.bbox[0]),
+                    b[1].min(g.bbox[1]),
+                    b[2].max(g.bbox[2]),
+                    b[3].max(g.bbox[3]),
                 ];
             }
         }
@@ -268,6 +267,9 @@ impl Segmenter for ColorSegmenter {
                 thread[y * rw + x] = u8::from(self.is_thread(p));
             }
         }
+        if self.min_component_px > 1 {
+            drop_specks(&mut needle, rw, rh, self.min_component_px as usize);
+        }
         Masks {
             roi,
             needle,
@@ -281,6 +283,86 @@ impl Segmenter for ColorSegmenter {
         let by_saturation = self.needle_max_saturation * max - (max - min);
         let by_value = max - f32::from(self.needle_min_value);
         by_saturation.min(by_value)
+    }
+}
+
+/// Groups smaller than this many cells across have no shape to judge.
+const MIN_SHAPED_CELLS: usize = 8;
+
+/// A connected group of grid cells.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Group {
+    count: usize,
+    /// `[x0, y0, x1, y1]`, cells, inclusive.
+    bbox: [usize; 4],
+}
+
+impl Group {
+    /// The larger side of its box, cells.
+    fn extent(&self) -> usize {
+        (self.bbox[2] - self.bbox[0]).max(self.bbox[3] - self.bbox[1]) + 1
+    }
+    /// Its cells over its extent squared.
+    fn fill(&self) -> f32 {
+        self.count as f32 / (self.extent() * self.extent()) as f32
+    }
+}
+
+/// Label the connected groups of hits (`u32::MAX`) in a `gw × gh` grid, cells within
+/// `reach` of each other joined (1: 8-neighbours). Labels the grid in place.
+fn label_groups(grid: &mut [u32], gw: usize, gh: usize, reach: i64) -> Vec<Group> {
+    let mut groups: Vec<Group> = Vec::new();
+    let mut stack = Vec::new();
+    for start in 0..grid.len() {
+        if grid[start] != u32::MAX {
+            continue;
+        }
+        let label = groups.len() as u32 + 1;
+        grid[start] = label;
+        stack.push(start);
+        let mut g = Group {
+            count: 0,
+            bbox: [usize::MAX, usize::MAX, 0, 0],
+        };
+        while let Some(i) = stack.pop() {
+            let (x, y) = (i % gw, i / gw);
+            g.count += 1;
+            g.bbox = [
+                g.bbox[0].min(x),
+                g.bbox[1].min(y),
+                g.bbox[2].max(x),
+                g.bbox[3].max(y),
+            ];
+            for dy in -reach..=reach {
+                for dx in -reach..=reach {
+                    let (nx, ny) = (x as i64 + dx, y as i64 + dy);
+                    if nx < 0 || ny < 0 || nx >= gw as i64 || ny >= gh as i64 {
+                        continue;
+                    }
+                    let j = ny as usize * gw + nx as usize;
+                    if grid[j] == u32::MAX {
+                        grid[j] = label;
+                        stack.push(j);
+                    }
+                }
+            }
+        }
+        groups.push(g);
+    }
+    groups
+}
+
+/// Clear the 8-connected components of a `w × h` mask smaller than `min` pixels.
+fn drop_specks(mask: &mut [u8], w: usize, h: usize, min: usize) {
+    let mut grid: Vec<u32> = mask
+        .iter()
+        .map(|&v| if v != 0 { u32::MAX } else { 0 })
+        .collect();
+    let groups = label_groups(&mut grid, w, h, 1);
+    for (m, &label) in mask.iter_mut().zip(&grid) {
+        if label != 0 && groups[label as usize - 1].count < min {
+            *m = 0;
+        }
     }
 }
 
