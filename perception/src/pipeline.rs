@@ -594,25 +594,28 @@ impl NeedlePipeline {
             });
         }
         let tip_is_lo = score > 0;
-        // Anchor on an end known to be real: the swage if both ends are seen (its end is
-        // crisp, while the taper's last fraction of a millimetre may fall below the mask's
-        // threshold), the tapered tip if that is the one seen, else the swage the thread or
-        // its thickness marked. The swage's rounded cap reaches past its centre line.
+        // The half circle sits on an end known to be real: the swage's if the whole arc is
+        // seen (within the tolerance: the taper's last millimetres may be lost) or the tip's
+        // end is not seen tapering (a jaw or the thread hides it); the tapered tip's
+        // otherwise (a jaw hides the swage), placed past the observed end by what the image
+        // lost of the taper. (Thread near the swage's end is no sign the end is seen: it
+        // leaves the swage from behind the jaw that hides it.)
         let swage_cap = SWAGE_RADIUS_SCALE * self.needle.wire_diameter_m / 2.0 / r;
-        let (lo_obs, hi_obs) = (arc.start, arc.start + arc.extent);
-        let (tip_i, swage_i) = if tip_is_lo { (0, 1) } else { (1, 0) };
-        let obs = [lo_obs, hi_obs];
-        // Towards the needle's middle from each observed end.
-        let inward = [1.0, -1.0];
-        let tip_seen = tip_like[tip_i];
-        let (tip_angle, swage_angle) = if full || !tip_seen {
-            // Both ends seen, or the tip's end is not: anchor on the swage.
-            let s = obs[swage_i] + inward[swage_i] * swage_cap;
-            (s + inward[swage_i] * PI, s)
+        let tip_i = if tip_is_lo { 0 } else { 1 };
+        let anchor = if full || !tip_like[tip_i] {
+            Anchor::Swage
         } else {
-            let t = obs[tip_i];
-            (t, t + inward[tip_i] * PI)
+            let (end, inward) = if tip_is_lo {
+                (arc.start, step)
+            } else {
+                (arc.start + arc.extent, -step)
+            };
+            Anchor::Tip {
+                lost_rad: self.taper_lost_m(&lm, &circle, end, inward) / r,
+            }
         };
+        let (tip_angle, swage_angle) =
+            half_circle_ends(arc.start, arc.extent, tip_is_lo, anchor, swage_cap);
         // Tip to swage runs counter-clockwise about the needle's +z.
         let z = if swage_angle > tip_angle {
             circle.normal
@@ -639,50 +642,86 @@ impl NeedlePipeline {
         })
     }
 
+    /// The needle mask's width across the projected arc at `angle` on `circle`, pixels
+    /// (`None` where the arc does not project).
+    fn width_at(&self, masks: &Masks, circle: &Circle, a: f64) -> Option<f64> {
+        let c = &self.calibration;
+        let (e1, e2) = plane_basis(&circle.normal);
+        let r = circle.radius;
+        let to_cam = c.camera_to_robot.inverse();
+        let p = to_cam * (circle.center + (e1 * a.cos() + e2 * a.sin()) * r);
+        let q = to_cam * (circle.center + (e1 * (a + 1e-3).cos() + e2 * (a + 1e-3).sin()) * r);
+        if p.z <= 1e-6 || q.z <= 1e-6 {
+            return None;
+        }
+        let proj = |v: &Point| (c.fx * v.x / v.z + c.cx, c.fy * v.y / v.z + c.cy);
+        let (pu, pv) = proj(&p);
+        let (qu, qv) = proj(&q);
+        let (tu, tv) = (qu - pu, qv - pv);
+        let n = (tu * tu + tv * tv).sqrt();
+        if n < 1e-9 {
+            return None;
+        }
+        let (nu, nv) = (-tv / n, tu / n);
+        let reach = 3.0 * c.fx * self.needle.wire_diameter_m / p.z + 2.0;
+        let mut count = 0;
+        let mut s = -reach;
+        while s <= reach {
+            let (x, y) = (pu + nu * s, pv + nv * s);
+            if x >= 0.0 && y >= 0.0 && masks.is_needle(x as u32, y as u32) {
+                count += 1;
+            }
+            s += 0.25;
+        }
+        Some(f64::from(count) * 0.25)
+    }
+
     /// The needle mask's width across the projected arc, pixels, averaged at 0.3, 0.6 and
     /// 0.9 mm from the end at `angle` (moving by `step` rad per mm into the needle), over the
     /// same at 3 mm: `None` if the wire is not seen there.
     fn width_ratio(&self, masks: &Masks, circle: &Circle, angle: f64, step: f64) -> Option<f64> {
-        let width_at = |a: f64| -> Option<f64> {
-            let c = &self.calibration;
-            let (e1, e2) = plane_basis(&circle.normal);
-            let r = circle.radius;
-            let to_cam = c.camera_to_robot.inverse();
-            let p = to_cam * (circle.center + (e1 * a.cos() + e2 * a.sin()) * r);
-            let q = to_cam * (circle.center + (e1 * (a + 1e-3).cos() + e2 * (a + 1e-3).sin()) * r);
-            if p.z <= 1e-6 || q.z <= 1e-6 {
-                return None;
-            }
-            let proj = |v: &Point| (c.fx * v.x / v.z + c.cx, c.fy * v.y / v.z + c.cy);
-            let (pu, pv) = proj(&p);
-            let (qu, qv) = proj(&q);
-            let (tu, tv) = (qu - pu, qv - pv);
-            let n = (tu * tu + tv * tv).sqrt();
-            if n < 1e-9 {
-                return None;
-            }
-            let (nu, nv) = (-tv / n, tu / n);
-            let reach = 3.0 * c.fx * self.needle.wire_diameter_m / p.z + 2.0;
-            let mut count = 0;
-            let mut s = -reach;
-            while s <= reach {
-                let (x, y) = (pu + nu * s, pv + nv * s);
-                if x >= 0.0 && y >= 0.0 && masks.is_needle(x as u32, y as u32) {
-                    count += 1;
-                }
-                s += 0.25;
-            }
-            Some(f64::from(count) * 0.25)
-        };
         let near: Vec<f64> = [0.3, 0.6, 0.9]
             .iter()
-            .filter_map(|mm| width_at(angle + step * mm))
+            .filter_map(|mm| self.width_at(masks, circle, angle + step * mm))
             .collect();
-        let inner = width_at(angle + step * 3.0)?;
+        let inner = self.width_at(masks, circle, angle + step * 3.0)?;
         if near.is_empty() || inner < 1.0 {
             return None;
         }
         Some(near.iter().sum::<f64>() / near.len() as f64 / inner)
+    }
+
+    /// How much of a tapered tip the mask lost past its observed end at `angle` (`step` rad
+    /// per mm into the needle), m: the taper's width profile over the first 2 mm, fitted
+    /// with a line and followed to zero width. 0 if the profile does not narrow outward;
+    /// at most 2 mm.
+    fn taper_lost_m(&self, masks: &Masks, circle: &Circle, angle: f64, step: f64) -> f64 {
+        let Some(full) = self.width_at(masks, circle, angle + step * 3.0) else {
+            return 0.0;
+        };
+        // (mm in from the observed end, width) where the wire is still narrowing.
+        let pts: Vec<(f64, f64)> = (1..=10)
+            .map(|k| f64::from(k) * 0.2)
+            .filter_map(|mm| Some((mm, self.width_at(masks, circle, angle + step * mm)?)))
+            .filter(|&(_, w)| w > 0.0 && w < 0.95 * full)
+            .collect();
+        if pts.len() < 3 {
+            return 0.0;
+        }
+        let n = pts.len() as f64;
+        let (mx, my) = (
+            pts.iter().map(|p| p.0).sum::<f64>() / n,
+            pts.iter().map(|p| p.1).sum::<f64>() / n,
+        );
+        let sxy: f64 = pts.iter().map(|p| (p.0 - mx) * (p.1 - my)).sum();
+        let sxx: f64 = pts.iter().map(|p| (p.0 - mx).powi(2)).sum();
+        if sxx <= 0.0 || sxy <= 0.0 {
+            return 0.0;
+        }
+        let slope = sxy / sxx;
+        // Width 0 at mm = mx − my / slope; the tip lies that far past the end if negative.
+        let zero_mm = mx - my / slope;
+        (-zero_mm).clamp(0.0, 2.0) * 1e-3
     }
 
     /// Stages 1 to 3: masks, disparity, the cloud in the robot frame; the diagnostics so far.
@@ -987,6 +1026,47 @@ pub fn point_cloud(
         pts = (0..max).map(|i| pts[(i as f64 * step) as usize]).collect();
     }
     pts.iter().map(|p| c.camera_to_robot * p).collect()
+}
+
+/// Which observed end of the arc places the half circle.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Anchor {
+    /// The swage's end is seen whole: the swage's centre lies a cap's width inside it.
+    Swage,
+    /// Only the tip's end is: the tip lies `lost_rad` past it (the taper's last part, too
+    /// thin for the image), rad along the circle.
+    Tip {
+        /// How far past the observed end the tip lies, rad.
+        lost_rad: f64,
+    },
+}
+
+/// The tip's and the swage's angles on the fitted circle (in its `plane_basis`) from the
+/// arc observed over `[start, start + extent]` (rad): the needle is a half circle, so its
+/// ends lie π apart whatever the image shows of the thin tip, and the observed arc only says
+/// where the half circle sits, through the end `anchor` names. `tip_is_lo`: the tip is at
+/// the observed arc's low end. `swage_cap_rad`: how far the swage's rounded end reaches
+/// past its centre, rad.
+pub fn half_circle_ends(
+    start: f64,
+    extent: f64,
+    tip_is_lo: bool,
+    anchor: Anchor,
+    swage_cap_rad: f64,
+) -> (f64, f64) {
+    let (lo, hi) = (start, start + extent);
+    // From the tip towards the swage along the circle: +1 if the tip is the low end.
+    let along = if tip_is_lo { 1.0 } else { -1.0 };
+    match anchor {
+        Anchor::Swage => {
+            let swage = if tip_is_lo { hi } else { lo } - along * swage_cap_rad;
+            (swage - along * PI, swage)
+        }
+        Anchor::Tip { lost_rad } => {
+            let tip = if tip_is_lo { lo } else { hi } - along * lost_rad.max(0.0);
+            (tip, tip + along * PI)
+        }
+    }
 }
 
 /// The pipeline behind [`NeedleEstimator`]: captures a pair from a camera and estimates.

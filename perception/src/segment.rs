@@ -142,6 +142,10 @@ pub struct ColorSegmenter {
     /// needle: a half circle of wire d and radius R fills about 1.6·d/(2R) whatever its
     /// distance (0.05 for the default needle); glare on wet tissue makes fuller blobs.
     pub max_fill: f32,
+    /// Least spread across a group's main axis over the spread along it for the needle
+    /// (standard deviations): a half circle gives 0.44 face on and about 0.13 within 18° of
+    /// edge on; a highlight along a straight shaft, a few hundredths.
+    pub min_bend: f32,
     /// Needle-mask components smaller than this are specks (glints, noise) and dropped,
     /// pixels.
     pub min_component_px: u32,
@@ -161,7 +165,8 @@ impl Default for ColorSegmenter {
             margin_px: 24,
             join_px: 90,
             bridge_cells: 2,
-            max_fill: 0.15,
+            max_fill: 0.10,
+            min_bend: 0.09,
             min_component_px: 10,
         }
     }
@@ -210,23 +215,26 @@ impl Segmenter for ColorSegmenter {
             return None;
         }
         let groups = label_groups(&mut grid, gw, gh, self.bridge_cells as i64);
-        // The needle is the largest group that is thin for its extent: a half circle of
-        // wire covers a small share of its extent squared, whatever its distance, while the
-        // glare on wet tissue makes blobs. Groups too small to have a shape count as thin.
+        // The needle is the largest group that is thin for its extent and bent: a half
+        // circle of wire covers a small share of its extent squared, whatever its distance,
+        // while the glare on wet tissue makes blobs, and the highlight along an instrument's
+        // shaft is straight. Groups too small to have a shape count as both.
         let thin = |g: &Group| g.extent() < MIN_SHAPED_CELLS || g.fill() <= self.max_fill;
+        let bent = |g: &Group| g.extent() < MIN_SHAPED_CELLS || g.bend() >= self.min_bend;
         let best = groups
             .iter()
-            .filter(|g| g.count >= self.min_hits && thin(g))
+            .filter(|g| g.count >= self.min_hits && thin(g) && bent(g))
             .max_by_key(|g| g.count)
             .or_else(|| groups.iter().max_by_key(|g| g.count))?;
         if best.count < self.min_hits {
             return None;
         }
         // Pieces of the same needle split by an occluder (the thread, a jaw): groups near
-        // it, within `join_px` or half its extent, that are thin or small beside it (a short
-        // piece of wire has no shape to judge; a blob of glare as big is not joined).
+        // it, within `join_px` or half its extent, that are thin and bent, or small beside it (a
+        // short piece of wire has no shape to judge; a blob of glare or a shaft's highlight
+        // as big is not joined).
         let join = ((self.join_px / s) as usize).max(best.extent() / 2);
-        let joinable = |g: &Group| thin(g) || g.count * 4 <= best.count;
+        let joinable = |g: &Group| (thin(g) && bent(g)) || g.count * 4 <= best.count;
         let mut b = best.bbox;
         for g in &groups {
             let gap_x = g.bbox[0]
@@ -295,6 +303,8 @@ struct Group {
     count: usize,
     /// `[x0, y0, x1, y1]`, cells, inclusive.
     bbox: [usize; 4],
+    /// Sums of x, y, x², y², xy over its cells (for its principal axes).
+    moments: [f64; 5],
 }
 
 impl Group {
@@ -305,6 +315,22 @@ impl Group {
     /// Its cells over its extent squared.
     fn fill(&self) -> f32 {
         self.count as f32 / (self.extent() * self.extent()) as f32
+    }
+    /// The spread across its main axis over the spread along it (standard deviations):
+    /// near 0 for a straight streak, about 0.44 for a half circle seen face on.
+    fn bend(&self) -> f32 {
+        let n = self.count as f64;
+        let [sx, sy, sxx, syy, sxy] = self.moments;
+        let (mx, my) = (sx / n, sy / n);
+        let (a, b, c) = (sxx / n - mx * mx, sxy / n - mx * my, syy / n - my * my);
+        // Eigenvalues of [[a, b], [b, c]].
+        let mid = (a + c) / 2.0;
+        let half = (((a - c) / 2.0).powi(2) + b * b).sqrt();
+        let (major, minor) = (mid + half, (mid - half).max(0.0));
+        if major <= 0.0 {
+            return 0.0;
+        }
+        (minor / major).sqrt() as f32
     }
 }
 
@@ -323,10 +349,17 @@ fn label_groups(grid: &mut [u32], gw: usize, gh: usize, reach: i64) -> Vec<Group
         let mut g = Group {
             count: 0,
             bbox: [usize::MAX, usize::MAX, 0, 0],
+            moments: [0.0; 5],
         };
         while let Some(i) = stack.pop() {
             let (x, y) = (i % gw, i / gw);
             g.count += 1;
+            let (fx, fy) = (x as f64, y as f64);
+            g.moments[0] += fx;
+            g.moments[1] += fy;
+            g.moments[2] += fx * fx;
+            g.moments[3] += fy * fy;
+            g.moments[4] += fx * fy;
             g.bbox = [
                 g.bbox[0].min(x),
                 g.bbox[1].min(y),
