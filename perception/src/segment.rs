@@ -229,21 +229,29 @@ impl Segmenter for ColorSegmenter {
         if best.count < self.min_hits {
             return None;
         }
-        // Pieces of the same needle split by an occluder (the thread, a jaw): groups near
-        // it, within `join_px` or half its extent, that are thin and bent, or small beside it (a
-        // short piece of wire has no shape to judge; a blob of glare or a shaft's highlight
-        // as big is not joined).
-        let join = ((self.join_px / s) as usize).max(best.extent() / 2);
-        let joinable = |g: &Group| (thin(g) && bent(g)) || g.count * 4 <= best.count;
-        let mut b = best.bbox;
-        for g in &groups {
+        // Pieces of the same needle split by an occluder (the thread, a jaw): groups that
+        // are thin and bent, within `join_px` or half the needle's extent; and small groups
+        // (a short piece of wire has no shape to judge) only where they nearly touch it —
+        // the specks of glare around a needle are small too, and are left out.
+        let far = ((self.join_px / s) as usize).max(best.extent() / 2);
+        let near = 2 * self.bridge_cells.max(1) as usize;
+        let gap = |g: &Group, b: &[usize; 4]| {
             let gap_x = g.bbox[0]
                 .saturating_sub(b[2])
                 .max(b[0].saturating_sub(g.bbox[2]));
             let gap_y = g.bbox[1]
                 .saturating_sub(b[3])
                 .max(b[1].saturating_sub(g.bbox[3]));
-            if g.count >= 2 && joinable(g) && gap_x <= join && gap_y <= join {
+            gap_x.max(gap_y)
+        };
+        let mut b = best.bbox;
+        for g in &groups {
+            let joins = if thin(g) && bent(g) && g.extent() >= MIN_SHAPED_CELLS {
+                gap(g, &b) <= far
+            } else {
+                g.count * 4 <= best.count && gap(g, &best.bbox) <= near
+            };
+            if g.count >= 2 && joins {
                 b = [
                     b[0].min(g.bbox[0]),
                     b[1].min(g.bbox[1]),
