@@ -10,7 +10,10 @@
 //! - **Another rig every pair.** Image sizes 1024×768 to 1920×1080, focal lengths 800–2,400
 //!   px, principal points off centre, baselines 4 mm (an endoscope) to 7 cm (two cameras on a
 //!   bar) — disparities from tens to several hundred pixels — looking from 7 to 22 cm at
-//!   35–85° elevation, rolled up to ±25°, the needle anywhere in the frame.
+//!   35–85° elevation, rolled up to ±25°, the needle anywhere in the frame. A rig whose pixel
+//!   of disparity spans more than 2.5 mm of depth at the needle is not drawn (a dVRK
+//!   endoscope's spans about 1.8 mm at 10 cm): no stereo method places a 0.7 mm wire's arc
+//!   from such a pair.
 //! - **Other tissue**: five palettes (muscle, red, liver, a pale phantom, fat), gradient-noise
 //!   texture with cellular vessels, bump-mapped and wet (specular highlights), none of the
 //!   mock's drape, slit or marks.
@@ -288,7 +291,16 @@ fn sample(rng: &mut ChaCha8Rng, needle: &Needle) -> Sample {
         let fx = rng.random_range(f_lo..f_hi);
         let cx = f64::from(width) / 2.0 + rng.random_range(-15.0..15.0);
         let cy = f64::from(height) / 2.0 + rng.random_range(-15.0..15.0);
-        let baseline_m = rng.random_range(0.004f64.ln()..0.07f64.ln()).exp();
+        // The baseline: 4 mm to 7 cm, but not so short for the distance that a pixel of
+        // disparity spans more than 2.5 mm of depth at the needle (a dVRK endoscope's 5.5 mm
+        // at 10 cm is about 1.8 mm a pixel; a 4 mm baseline at 21 cm, 10 mm, where no stereo
+        // method can place a 0.7 mm wire's arc).
+        let z_mid = depths.iter().sum::<f64>() / depths.len() as f64;
+        let b_lo = 0.004f64.max(z_mid * z_mid / (fx * MAX_DEPTH_STEP_M));
+        if b_lo >= 0.07 {
+            continue;
+        }
+        let baseline_m = rng.random_range(b_lo.ln()..0.07f64.ln()).exp();
         let calibration = StereoCalibration {
             fx,
             fy: fx,
@@ -588,6 +600,8 @@ fn catmull_rom(p: &[Point], per: usize) -> Vec<Point> {
 // way than the mock does, and it is a few hundred lines of intersection and shading.
 
 const TILE: u32 = 16;
+/// The most depth one pixel of disparity may span at the needle, m (see `sample`).
+const MAX_DEPTH_STEP_M: f64 = 0.0025;
 /// Capsules per bounding sphere for shadow rays.
 const GROUP: usize = 8;
 
@@ -1186,7 +1200,7 @@ pub fn render(sample: &Sample) -> (RgbImage, RgbImage) {
 
 /// The renderer's version: part of a cached pair's file name, raised whenever a change to
 /// the renderer changes its images, so a cache never serves pairs an older renderer made.
-pub const RENDER_VERSION: u32 = 2;
+pub const RENDER_VERSION: u32 = 3;
 
 /// A sample's pair from `cache` if it holds it, else rendered (and written there when
 /// `cache` is given; a pair that cannot be written is still returned). The files are raw
