@@ -543,26 +543,7 @@ impl NeedlePipeline {
         ];
         diag.thread_px = threads;
         diag.taper = taper;
-        // Evidence that the observed low end is the tip: the end whose wire narrows more
-        // towards it is the tip (or, with one end measured, a tapered end is the tip and a
-        // thick one the swage), and the thread leaves at the swage; each counts 2, and
-        // contradicting cues cancel.
-        let by_thread = |i: usize| {
-            threads[i] >= p.min_thread_px
-                && threads[i] as f64 >= p.swage_ratio * threads[1 - i] as f64
-        };
         let tip_like = taper.map(|t| t.is_some_and(|t| t > 0.2 && t < p.tip_taper_ratio));
-        let taper_score = match taper {
-            [Some(lo), Some(hi)] if hi - lo > p.taper_difference => 2,
-            [Some(lo), Some(hi)] if lo - hi > p.taper_difference => -2,
-            [Some(_), Some(_)] => 0,
-            [Some(lo), None] if lo < p.tip_taper_ratio => 2,
-            [Some(lo), None] if lo > p.swage_taper_ratio => -2,
-            [None, Some(hi)] if hi < p.tip_taper_ratio => -2,
-            [None, Some(hi)] if hi > p.swage_taper_ratio => 2,
-            _ => 0,
-        };
-        let thread_score = 2 * (i32::from(by_thread(1)) - i32::from(by_thread(0)));
         // A known jaw decides: the end it holds the needle nearer to (if clearly nearer).
         let jaw_score = jaw.map_or(0, |h| {
             let d = h.jaw - circle.center;
@@ -577,12 +558,7 @@ impl NeedlePipeline {
                 if lo_is_tip { 8 } else { -8 }
             }
         });
-        let score = if jaw_score != 0 {
-            jaw_score
-        } else {
-            taper_score + thread_score
-        };
-        if score.abs() < 2 {
+        let Some(tip_is_lo) = tip_is_low_end(threads, taper, jaw_score, p) else {
             return Err(PerceptionError::AmbiguousEndpoints {
                 why: format!(
                     "thread pixels near the two ends: {} and {}; width at the ends against 3 mm in: {} and {}",
@@ -592,8 +568,7 @@ impl NeedlePipeline {
                     taper[1].map_or("–".into(), |t| format!("{t:.2}")),
                 ),
             });
-        }
-        let tip_is_lo = score > 0;
+        };
         // The half circle sits on an end known to be real: the swage's if the whole arc is
         // seen (within the tolerance: the taper's last millimetres may be lost) or the tip's
         // end is not seen tapering (a jaw or the thread hides it); the tapered tip's
@@ -1026,6 +1001,45 @@ pub fn point_cloud(
         pts = (0..max).map(|i| pts[(i as f64 * step) as usize]).collect();
     }
     pts.iter().map(|p| c.camera_to_robot * p).collect()
+}
+
+/// Whether the observed arc's low end is the tip, from the cues at its two ends (low end
+/// first): thread pixels near each, the wire's width near each against 3 mm in, and the
+/// jaw's say (`jaw_score`: positive if a known jaw puts the tip at the low end, negative if
+/// at the high end, 0 if it has none). `None` when they cannot tell.
+///
+/// A known jaw decides. Otherwise two cues count alike: the thread, which leaves at the
+/// swage, when it marks one end (at least `min_thread_px` there and `swage_ratio` times the
+/// other's); and the taper — the end whose wire narrows more towards it is the tip, or with
+/// one end measured, a tapered end is the tip and a thick one the swage. Either alone
+/// decides; when they contradict each other the answer is `None` (a wrong end is a pose
+/// 24 mm off; a typed failure lets the robot look again).
+pub fn tip_is_low_end(
+    threads: [usize; 2],
+    taper: [Option<f64>; 2],
+    jaw_score: i32,
+    p: &PipelineParams,
+) -> Option<bool> {
+    if jaw_score != 0 {
+        return Some(jaw_score > 0);
+    }
+    let by_thread = |i: usize| {
+        threads[i] >= p.min_thread_px && threads[i] as f64 >= p.swage_ratio * threads[1 - i] as f64
+    };
+    let thread = i32::from(by_thread(1)) - i32::from(by_thread(0));
+    let taper = match taper {
+        [Some(lo), Some(hi)] if hi - lo > p.taper_difference => 1,
+        [Some(lo), Some(hi)] if lo - hi > p.taper_difference => -1,
+        [Some(lo), None] if lo < p.tip_taper_ratio => 1,
+        [Some(lo), None] if lo > p.swage_taper_ratio => -1,
+        [None, Some(hi)] if hi < p.tip_taper_ratio => -1,
+        [None, Some(hi)] if hi > p.swage_taper_ratio => 1,
+        _ => 0,
+    };
+    match thread + taper {
+        0 => None,
+        s => Some(s > 0),
+    }
 }
 
 /// Which observed end of the arc places the half circle.
