@@ -230,7 +230,8 @@ impl Segmenter for ColorSegmenter {
             return None;
         }
         // Pieces of the same needle split by an occluder (the thread, a jaw): groups that
-        // are thin and bent, within `join_px` or half the needle's extent; and small groups
+        // are thin (and bent, or half its size or less), within `join_px` or half the
+        // needle's extent; and small groups
         // (a short piece of wire has no shape to judge) only where they nearly touch it —
         // the specks of glare around a needle are small too, and are left out.
         let far = ((self.join_px / s) as usize).max(best.extent() / 2);
@@ -244,12 +245,31 @@ impl Segmenter for ColorSegmenter {
                 .max(b[1].saturating_sub(g.bbox[3]));
             gap_x.max(gap_y)
         };
+        // A short piece of arc is nearly straight: thin groups half the needle's size or
+        // less join whether bent or not (a shaft's highlight is longer than that).
+        let shaped = |g: &Group| {
+            thin(g) && (bent(g) || g.count * 2 <= best.count) && g.extent() >= MIN_SHAPED_CELLS
+        };
+        // Small groups within reach: a few are the needle's pieces past a jaw or the
+        // thread; many are a field of glare specks, of which only those touching it join.
+        let small = |g: &Group| {
+            g.count >= 2
+                && !shaped(g)
+                && g.count * 2 <= best.count
+                && g.bbox != best.bbox
+                && gap(g, &best.bbox) <= far
+        };
+        let small_reach = if groups.iter().filter(|g| small(g)).count() <= MAX_PIECES {
+            far
+        } else {
+            near
+        };
         let mut b = best.bbox;
         for g in &groups {
-            let joins = if thin(g) && bent(g) && g.extent() >= MIN_SHAPED_CELLS {
+            let joins = if shaped(g) {
                 gap(g, &b) <= far
             } else {
-                g.count * 4 <= best.count && gap(g, &best.bbox) <= near
+                small(g) && gap(g, &best.bbox) <= small_reach
             };
             if g.count >= 2 && joins {
                 b = [
@@ -301,6 +321,10 @@ impl Segmenter for ColorSegmenter {
         by_saturation.min(by_value)
     }
 }
+
+/// Small groups near the needle that can be its pieces (past a jaw, the thread); more are
+/// a field of glare specks.
+const MAX_PIECES: usize = 3;
 
 /// Groups smaller than this many cells across have no shape to judge.
 const MIN_SHAPED_CELLS: usize = 8;
