@@ -319,11 +319,10 @@ fn sample(rng: &mut ChaCha8Rng, needle: &Needle) -> Sample {
                 u > 16.0 && v > 16.0 && u < f64::from(width) - 16.0 && v < f64::from(height) - 16.0
             })
         };
-        if !(in_view(0.0) && in_view(baseline_m)) {
-            if attempt < 5000 {
-                continue;
-            }
-            // Statistically unreachable; a smaller baseline always fits a needle in view.
+        // Both views must see the whole needle; after 5,000 draws (statistically
+        // unreachable) the last one is kept rather than loop forever.
+        if !(in_view(0.0) && in_view(baseline_m)) && attempt < 5000 {
+            continue;
         }
         return build(rng, needle, calibration, truth, wire_r, presented);
     }
