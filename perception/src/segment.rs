@@ -229,11 +229,9 @@ impl Segmenter for ColorSegmenter {
         if best.count < self.min_hits {
             return None;
         }
-        // Pieces of the same needle split by an occluder (the thread, a jaw): groups that
-        // are thin (and bent, or half its size or less), within `join_px` or half the
-        // needle's extent; and small groups
-        // (a short piece of wire has no shape to judge) only where they nearly touch it —
-        // the specks of glare around a needle are small too, and are left out.
+        // Pieces of the same needle split by an occluder (the thread, a jaw) join it: groups
+        // that are thin (and bent, or half its size or less), within `join_px` or half the
+        // needle's extent; and small groups (a short piece of wire has no shape to judge).
         let far = ((self.join_px / s) as usize).max(best.extent() / 2);
         let near = 2 * self.bridge_cells.max(1) as usize;
         let gap = |g: &Group, b: &[usize; 4]| {
@@ -506,6 +504,53 @@ mod tests {
         assert!(m.is_needle(120, 52) && !m.is_needle(120, 60));
         let blank = image_with(320, 240, [206, 122, 118], &[]);
         assert_eq!(s.locate(&blank, Rect::full(320, 240)), None);
+    }
+
+    #[test]
+    fn glare_blobs_and_a_shaft_highlight_are_not_the_needle() {
+        let grey = [170, 170, 172];
+        let mut draw = Vec::new();
+        // The needle: a half circle of radius 60 px, 3 px wire, around (400, 300).
+        for k in 0..2000 {
+            let a = std::f64::consts::PI * f64::from(k) / 1999.0;
+            for dr in [-1.0, 0.0, 1.0] {
+                let (x, y) = (400.0 + (60.0 + dr) * a.cos(), 300.0 - (60.0 + dr) * a.sin());
+                draw.push((x as u32, y as u32, grey));
+            }
+        }
+        // Glare: a dense blob of 70 px across, more pixels than the needle.
+        for y in 60..130u32 {
+            for x in 60..130u32 {
+                if (x + y) % 5 != 0 {
+                    draw.push((x, y, [235, 228, 226]));
+                }
+            }
+        }
+        // A shaft's highlight: a straight bar 300 px long, 6 px wide.
+        for x in 150..450u32 {
+            for y in 420..426u32 {
+                draw.push((x, y, [200, 200, 200]));
+            }
+        }
+        let img = image_with(640, 480, [150, 40, 40], &draw);
+        let s = ColorSegmenter::default();
+        let r = s.locate(&img, Rect::full(640, 480)).expect("found");
+        assert!(
+            r.x0 <= 340 && r.x1 >= 460 && r.y0 <= 240 && r.y1 >= 300,
+            "{r:?}"
+        );
+        assert!(
+            r.x0 > 130 && r.y1 < 420,
+            "glare or the highlight taken: {r:?}"
+        );
+        // Without the shape tests (the largest group, as before), the glare is taken.
+        let largest = ColorSegmenter {
+            max_fill: 1.0,
+            min_bend: 0.0,
+            ..ColorSegmenter::default()
+        };
+        let r = largest.locate(&img, Rect::full(640, 480)).expect("found");
+        assert!(r.x0 < 130 && r.y0 < 130, "{r:?}");
     }
 
     #[test]
