@@ -163,6 +163,10 @@ pub struct JawHint {
 struct Region {
     center: Point,
     reach_m: f64,
+    /// Segment the whole projection rather than locate the needle in it: a needle lodged
+    /// in tissue shows short pieces past its holes, which the segmenter's tests of a
+    /// needle's shape are not made for.
+    whole: bool,
 }
 
 /// What the robot knows about a needle lodged in tissue: the holes it went through.
@@ -252,6 +256,7 @@ impl NeedlePipeline {
         Region {
             center: *point,
             reach_m: 2.0 * self.needle.radius_m + 0.004,
+            whole: false,
         }
     }
 
@@ -382,12 +387,14 @@ impl NeedlePipeline {
                 .ok_or(PerceptionError::NoMask {
                     view: "left (the expected region is out of view)".into(),
                 })?;
-            let lm = seg
-                .locate(left, rect)
-                .map(|roi| seg.segment(left, roi))
-                .ok_or(PerceptionError::NoMask {
-                    view: "left".into(),
-                })?;
+            let lm = if region.whole {
+                Some(seg.segment(left, rect)).filter(|m| m.needle_count() > 0)
+            } else {
+                seg.locate(left, rect).map(|roi| seg.segment(left, roi))
+            }
+            .ok_or(PerceptionError::NoMask {
+                view: "left".into(),
+            })?;
             let l = lm.roi;
             let rr = Rect {
                 x0: l.x0.saturating_sub(range[1]),
@@ -763,7 +770,10 @@ impl NeedlePipeline {
         check_image(right, c.width, c.height, "right")?;
         let (e, x) = (holes.entry, holes.exit);
         let mid = Point::from((e.coords + x.coords) / 2.0);
-        let region = self.region_near(&mid);
+        let region = Region {
+            whole: true,
+            ..self.region_near(&mid)
+        };
         let (_, cloud, mut diag) = self.cloud(left, right, Some(region))?;
         let t3 = Instant::now();
         if cloud.len() < p.min_points_in_tissue {
