@@ -38,8 +38,12 @@ pub struct PipelineParams {
     pub min_points: usize,
     /// RANSAC thresholds and iterations.
     pub ransac: RansacParams,
-    /// Least share of the cloud on the fitted circle.
+    /// Least share of the points within `share_zone_m` of the fitted circle that are on it.
     pub min_inlier_share: f64,
+    /// Points this near the fitted circle count for `min_inlier_share` (clutter beside
+    /// the needle counts against a fit; things farther off, a jaw's body, a patch of
+    /// glare, do not), m.
+    pub share_zone_m: f64,
     /// Least arc seen, rad (the needle is a half circle: π).
     pub min_arc_rad: f64,
     /// A half-circle needle covers π and its two rounded ends; points covering more than π
@@ -80,6 +84,7 @@ impl Default for PipelineParams {
             min_points: 40,
             ransac: RansacParams::default(),
             min_inlier_share: 0.5,
+            share_zone_m: 0.003,
             min_arc_rad: 140f64.to_radians(),
             max_overshoot_rad: 8f64.to_radians(),
             full_arc_tolerance_rad: 12f64.to_radians(),
@@ -498,13 +503,20 @@ impl NeedlePipeline {
         diag.rms_m = (pts.iter().map(|q| circle.distance(q).powi(2)).sum::<f64>()
             / pts.len().max(1) as f64)
             .sqrt();
-        let share = pts.len() as f64 / cloud.len() as f64;
+        // The share of the points near the circle that are on it: clutter beside the
+        // needle (glints, a jaw's metal) counts against a fit, things farther off do not.
+        let near = cloud
+            .iter()
+            .filter(|q| circle.distance(q) <= p.share_zone_m)
+            .count()
+            .max(pts.len());
+        let share = pts.len() as f64 / near as f64;
         if pts.len() < p.min_points || share < p.min_inlier_share {
             return Err(PerceptionError::BadFit {
                 why: format!(
-                    "{} of {} points on the best circle ({:.0} %)",
+                    "{} of {} points near the best circle on it ({:.0} %)",
                     pts.len(),
-                    cloud.len(),
+                    near,
                     100.0 * share
                 ),
             });
