@@ -32,7 +32,7 @@
 //! steel needle of the pipeline's radius and wire, a violet thread. Every pair is drawn from
 //! one seed; the same seed gives the same set and the same pixels.
 
-use crate::{FrameResult, failure_kind};
+use crate::FrameResult;
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
@@ -40,7 +40,7 @@ use rand_chacha::rand_core::SeedableRng;
 use std::f64::consts::{PI, TAU};
 use std::time::Instant;
 use stitch_perception::PerceptionError;
-use stitch_perception::pipeline::{JawHint, NeedleEnd, NeedlePipeline, PoseError};
+use stitch_perception::pipeline::{JawHint, NeedleEnd, NeedlePipeline};
 use stitch_robot::{Needle, Point, Pose, RgbImage, StereoCalibration, Vector};
 
 /// One independent pair's scene and truth.
@@ -1267,32 +1267,14 @@ pub fn run(
                         .map(|o| (o, p.needle))
                 });
                 let total = t0.elapsed();
-                let r = match out {
-                    Ok((o, needle)) => FrameResult {
-                        error: Some(PoseError::between(&needle, &o.pose, &s.truth)),
-                        failure: None,
-                        message: None,
-                        confidence: o.confidence,
-                        arc_deg: o.diagnostics.arc_rad.to_degrees(),
-                        times: o.diagnostics.times,
-                        total,
-                        render: render_each,
-                        jaw: s.jaw_label(),
-                        thread_over: s.thread_over,
-                    },
-                    Err(e) => FrameResult {
-                        error: None,
-                        failure: Some(failure_kind(&e).to_string()),
-                        message: Some(e.to_string()),
-                        confidence: 0.0,
-                        arc_deg: 0.0,
-                        times: Default::default(),
-                        total,
-                        render: render_each,
-                        jaw: s.jaw_label(),
-                        thread_over: s.thread_over,
-                    },
-                };
+                let r = FrameResult::new(
+                    out,
+                    &s.truth,
+                    total,
+                    render_each,
+                    s.jaw_label(),
+                    s.thread_over,
+                );
                 results[m].push(r);
             }
         }

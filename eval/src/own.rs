@@ -7,13 +7,13 @@
 //! point); the thread runs from the swage to the wound, and in a share of frames loops over
 //! the needle. Everything from one seed.
 
-use crate::{FrameResult, failure_kind};
+use crate::FrameResult;
 use nalgebra::{Translation3, Unit, UnitQuaternion};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use rand_chacha::rand_core::SeedableRng;
 use std::time::Instant;
-use stitch_perception::pipeline::{JawHint, NeedleEnd, NeedlePipeline, PoseError};
+use stitch_perception::pipeline::{JawHint, NeedleEnd, NeedlePipeline};
 use stitch_robot::{Needle, Point, Pose, Vector};
 use stitch_sim::{PhantomView, SceneView, StereoRenderer, ToolView, grasp_in_needle_frame};
 
@@ -142,35 +142,14 @@ pub fn run(
             let hint = hinted.then(|| jaw_hint(s));
             let out = pipeline.estimate(&pair.left, &pair.right, hint.as_ref(), seed ^ i as u64);
             let total = t1.elapsed();
-            let (error, failure, times, confidence, arc_deg) = match out {
-                Ok(o) => (
-                    Some(PoseError::between(&pipeline.needle, &o.pose, &s.truth)),
-                    None,
-                    o.diagnostics.times,
-                    o.confidence,
-                    o.diagnostics.arc_rad.to_degrees(),
-                ),
-                Err(e) => (
-                    None,
-                    Some((failure_kind(&e).to_string(), e.to_string())),
-                    Default::default(),
-                    0.0,
-                    0.0,
-                ),
-            };
-            let (failure, message) = failure.unzip();
-            FrameResult {
-                error,
-                failure,
-                message,
-                confidence,
-                arc_deg,
-                times,
+            FrameResult::new(
+                out.map(|o| (o, pipeline.needle)),
+                &s.truth,
                 total,
-                render: t1 - t0,
-                jaw: s.jaw,
-                thread_over: s.thread_over,
-            }
+                t1 - t0,
+                s.jaw,
+                s.thread_over,
+            )
         })
         .collect()
 }

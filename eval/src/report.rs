@@ -3,7 +3,8 @@
 use serde::Serialize;
 use std::time::Duration;
 use stitch_perception::PerceptionError;
-use stitch_perception::pipeline::{PoseError, StageTimes};
+use stitch_perception::pipeline::{PipelineOutput, PoseError, StageTimes};
+use stitch_robot::{Needle, Pose};
 
 /// One frame's result.
 #[derive(Clone, Debug, PartialEq, Serialize)]
@@ -29,6 +30,50 @@ pub struct FrameResult {
     pub jaw: &'static str,
     /// Whether the thread lay over the needle.
     pub thread_over: bool,
+}
+
+impl FrameResult {
+    /// A frame's result from the pipeline's answer (the estimate and the needle it assumed,
+    /// or the typed failure) against the true pose.
+    pub fn new(
+        out: Result<(PipelineOutput, Needle), PerceptionError>,
+        truth: &Pose,
+        total: Duration,
+        render: Duration,
+        jaw: &'static str,
+        thread_over: bool,
+    ) -> Self {
+        let (error, failure, message, confidence, arc_deg, times) = match out {
+            Ok((o, needle)) => (
+                Some(PoseError::between(&needle, &o.pose, truth)),
+                None,
+                None,
+                o.confidence,
+                o.diagnostics.arc_rad.to_degrees(),
+                o.diagnostics.times,
+            ),
+            Err(e) => (
+                None,
+                Some(failure_kind(&e).to_string()),
+                Some(e.to_string()),
+                0.0,
+                0.0,
+                StageTimes::default(),
+            ),
+        };
+        Self {
+            error,
+            failure,
+            message,
+            confidence,
+            arc_deg,
+            times,
+            total,
+            render,
+            jaw,
+            thread_over,
+        }
+    }
 }
 
 /// A failure's kind, for tables.

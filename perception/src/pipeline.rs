@@ -401,14 +401,7 @@ impl NeedlePipeline {
                 view: "left".into(),
             })?;
             let l = lm.roi;
-            let rr = Rect {
-                x0: l.x0.saturating_sub(range[1]),
-                x1: l
-                    .x1
-                    .saturating_sub(range[0])
-                    .max(l.x0.saturating_sub(range[1]) + 1),
-                ..l
-            };
+            let rr = right_band(&l, range);
             let rm = seg.segment(right, rr);
             if rm.needle_count() == 0 {
                 return Err(PerceptionError::NoMask {
@@ -425,15 +418,7 @@ impl NeedlePipeline {
         let lroi = seg.locate(left, hl).ok_or(PerceptionError::NoMask {
             view: "left".into(),
         })?;
-        let hr = Rect {
-            x0: lroi.x0.saturating_sub(cmax),
-            x1: lroi
-                .x1
-                .saturating_sub(cmin)
-                .max(lroi.x0.saturating_sub(cmax) + 1),
-            ..lroi
-        }
-        .clipped(c.width, c.height);
+        let hr = right_band(&lroi, [cmin, cmax]).clipped(c.width, c.height);
         let rroi = seg.locate(right, hr).ok_or(PerceptionError::NoMask {
             view: "right".into(),
         })?;
@@ -1023,6 +1008,17 @@ pub fn point_cloud(
         pts = (0..max).map(|i| pts[(i as f64 * step) as usize]).collect();
     }
     pts.iter().map(|p| c.camera_to_robot * p).collect()
+}
+
+/// Where in the right view of a rectified pair the points of the left view's region `l` can
+/// appear at disparities `range`: its rows, shifted left by them (at least a column wide).
+fn right_band(l: &Rect, range: [u32; 2]) -> Rect {
+    let x0 = l.x0.saturating_sub(range[1]);
+    Rect {
+        x0,
+        x1: l.x1.saturating_sub(range[0]).max(x0 + 1),
+        ..*l
+    }
 }
 
 /// Whether the observed arc's low end is the tip, from the cues at its two ends (low end

@@ -254,7 +254,7 @@ impl Segmenter for ColorSegmenter {
             g.count >= 2
                 && !shaped(g)
                 && g.count * 2 <= best.count
-                && g.bbox != best.bbox
+                && !std::ptr::eq(g, best)
                 && gap(g, &best.bbox) <= far
         };
         let small_reach = if groups.iter().filter(|g| small(g)).count() <= MAX_PIECES {
