@@ -6,12 +6,13 @@ use std::cell::Cell;
 use std::rc::Rc;
 use std::sync::Arc;
 use stitch_engine::{
-    InterventionRequest, InterventionResult, Plan, Report, Runner, ScriptedSupervisor, SourcePos,
-    Step, Supervisor, SupervisorCommand, Throw, TimedCommand,
+    CheckpointRequest, Cmp, Condition, End, InterventionRequest, InterventionResult, Node, Plan,
+    Quantity, Report, Runner, ScriptedSupervisor, SourcePos, Step, Supervisor, SupervisorCommand,
+    Target, Throw, TimedCommand, Unit,
 };
 use stitch_primitives::{
-    PrimitiveError, Primitives, Scripted, ScriptedPrimitives, StepKind, StepOutcome, StepRequest,
-    Value,
+    Observation, ObserveRequest, PrimitiveError, Primitives, Scripted, ScriptedPrimitives,
+    StepKind, StepOutcome, StepRequest, Value,
 };
 use stitch_robot::{SimClock, Wound, WoundSpec};
 
@@ -60,40 +61,46 @@ pub fn plan_from(templates: &[usize], budgets: Budgets) -> Plan {
     let throws = templates
         .iter()
         .zip(&wound.points)
-        .map(|(&t, point)| Throw {
-            point: point.clone(),
-            steps: TEMPLATES[t % TEMPLATES.len()]
-                .iter()
-                .map(|name| {
-                    let mut kind = StepKind::default_for(name).expect("a known step");
-                    let retries = match kind {
-                        StepKind::Extract(_) => Some(budgets.extract),
-                        StepKind::Handover(_) => Some(budgets.handover),
-                        StepKind::EstimateNeedle(_) | StepKind::TrackThread(_) => {
-                            Some(budgets.perception)
-                        }
-                        _ => None,
-                    };
-                    if let Some(r) = retries {
-                        kind.set("retries", Value::Count(i64::from(r)))
-                            .expect("retries");
-                    }
-                    Step {
-                        kind,
-                        pos: SourcePos::default(),
-                    }
-                })
-                .collect(),
-            pos: SourcePos::default(),
+        .map(|(&t, point)| {
+            Throw::of_steps(
+                point.clone(),
+                template_steps(t, budgets),
+                SourcePos::default(),
+            )
         })
         .collect();
     Plan {
         name: "generated".into(),
         file: "generated.rhai".into(),
         interventions: budgets.interventions,
+        thread_length_m: None,
         throws,
         pos: SourcePos::default(),
     }
+}
+
+/// The steps of template `t` with these budgets.
+pub fn template_steps(t: usize, budgets: Budgets) -> Vec<Step> {
+    TEMPLATES[t % TEMPLATES.len()]
+        .iter()
+        .map(|name| {
+            let mut kind = StepKind::default_for(name).expect("a known step");
+            let retries = match kind {
+                StepKind::Extract(_) => Some(budgets.extract),
+                StepKind::Handover(_) => Some(budgets.handover),
+                StepKind::EstimateNeedle(_) | StepKind::TrackThread(_) => Some(budgets.perception),
+                _ => None,
+            };
+            if let Some(r) = retries {
+                kind.set("retries", Value::Count(i64::from(r)))
+                    .expect("retries");
+            }
+            Step {
+                kind,
+                pos: SourcePos::default(),
+            }
+        })
+        .collect()
 }
 
 /// Everything a scripted run leaves for a test to inspect.
@@ -130,15 +137,37 @@ pub fn run_scripted(
     commands: Vec<TimedCommand>,
     interventions: Vec<InterventionResult>,
 ) -> Run {
+    run_scripted_deciding(
+        plan,
+        outcomes,
+        commands,
+        interventions,
+        Vec::new(),
+        Vec::new(),
+    )
+}
+
+/// [`run_scripted`], the plan's conditions taking `conditions` in order and its checkpoints
+/// answered with `checkpoints`.
+pub fn run_scripted_deciding(
+    plan: Plan,
+    outcomes: Vec<Scripted>,
+    commands: Vec<TimedCommand>,
+    interventions: Vec<InterventionResult>,
+    conditions: Vec<bool>,
+    checkpoints: Vec<SupervisorCommand>,
+) -> Run {
     let clock = SimClock::new();
     let plan = Arc::new(plan);
     let calls = Rc::new(Cell::new(0));
     let mut primitives = Counted {
-        inner: ScriptedPrimitives::from_schedule(outcomes, clock.clone()),
+        inner: ScriptedPrimitives::from_schedule(outcomes, clock.clone())
+            .with_conditions(conditions),
         calls: Rc::clone(&calls),
     };
     let mut supervisor = Noted {
-        inner: ScriptedSupervisor::new(commands, interventions.clone()),
+        inner: ScriptedSupervisor::new(commands, interventions.clone())
+            .with_checkpoints(checkpoints),
         calls,
         at: Vec::new(),
     };
@@ -172,6 +201,9 @@ impl Primitives for Counted {
         self.calls.set(self.calls.get() + 1);
         self.inner.run(req)
     }
+    fn observe(&mut self, req: &ObserveRequest<'_>) -> Observation {
+        self.inner.observe(req)
+    }
     fn hold_all(&mut self) -> Result<(), PrimitiveError> {
         self.inner.hold_all()
     }
@@ -194,6 +226,9 @@ impl Supervisor for Noted {
     fn intervene(&mut self, request: &InterventionRequest) -> InterventionResult {
         self.at.push(self.calls.get());
         self.inner.intervene(request)
+    }
+    fn checkpoint(&mut self, request: &CheckpointRequest) -> Option<SupervisorCommand> {
+        self.inner.checkpoint(request)
     }
 }
 
@@ -255,6 +290,159 @@ pub fn plans() -> impl Strategy<Value = Plan> {
                         interventions,
                     },
                 )
+            },
+        )
+}
+
+/// Arbitrary conditions: every kind of quantity, comparison and combinator, nested.
+pub fn condition() -> impl Strategy<Value = Condition> {
+    let quantity = prop_oneof![
+        Just(Quantity::NeedleConfidence),
+        Just(Quantity::NeedleNormalAngle {
+            to: [0.0, 1.0, 0.0]
+        }),
+        Just(Quantity::NeedleEndDistance {
+            end: End::Tip,
+            to: Target::RightJaw,
+        }),
+        Just(Quantity::NeedleEndDistance {
+            end: End::Swage,
+            to: Target::Point([0.0, 0.0, -0.12]),
+        }),
+        Just(Quantity::NeedleAge),
+        Just(Quantity::ThreadLeft),
+        Just(Quantity::ThrowNumber),
+        Just(Quantity::InterventionsLeft),
+        Just(Quantity::RetriesUsed),
+    ];
+    let cmp = prop::sample::select(vec![Cmp::Lt, Cmp::Le, Cmp::Gt, Cmp::Ge, Cmp::Eq, Cmp::Ne]);
+    let leaf = prop_oneof![
+        1 => Just(Condition::NeedleSeen),
+        4 => (quantity, cmp, 0.0f64..4.0).prop_map(|(quantity, cmp, bound)| Condition::Compare {
+            quantity,
+            cmp,
+            bound: if quantity.unit() == Unit::Count { bound.round() } else { bound * 0.01 },
+        }),
+    ];
+    leaf.prop_recursive(3, 12, 3, |inner| {
+        prop_oneof![
+            prop::collection::vec(inner.clone(), 0..3).prop_map(|of| Condition::All { of }),
+            prop::collection::vec(inner.clone(), 0..3).prop_map(|of| Condition::Any { of }),
+            inner.prop_map(|c| Condition::Not { of: Box::new(c) }),
+        ]
+    })
+}
+
+/// How a generated throw wraps its template's steps.
+#[derive(Clone, Debug)]
+pub enum Shape {
+    /// As they are.
+    Plain,
+    /// `when(c, [estimate_needle()]).otherwise([track_thread()])` first.
+    WhenFirst(Condition),
+    /// `repeat(#{ max, stop_when: c }, [estimate_needle()])` first (`c` optional).
+    RepeatFirst(u8, Option<Condition>),
+    /// `when(c, template).otherwise(other template)`: the whole throw in a branch.
+    Branches(Condition, usize),
+    /// A checkpoint first.
+    Checkpoint,
+}
+
+/// Plans of 1 to 4 throws of templates in arbitrary constructs, with budgets from 0 to
+/// beyond the caps. Every branch and loop body leaves the needle where it found it.
+pub fn conditional_plans() -> impl Strategy<Value = Plan> {
+    conditional_plans_with(9, 4)
+}
+
+/// [`conditional_plans`] with retries up to `max_retries` and interventions up to
+/// `max_interventions` asked for.
+pub fn conditional_plans_with(
+    max_retries: u8,
+    max_interventions: u8,
+) -> impl Strategy<Value = Plan> {
+    let shape = prop_oneof![
+        1 => Just(Shape::Plain),
+        2 => condition().prop_map(Shape::WhenFirst),
+        2 => (1u8..=5, prop::option::of(condition())).prop_map(|(m, c)| Shape::RepeatFirst(m, c)),
+        2 => (condition(), 0..TEMPLATES.len()).prop_map(|(c, t)| Shape::Branches(c, t)),
+        1 => Just(Shape::Checkpoint),
+    ];
+    (
+        prop::collection::vec((0..TEMPLATES.len(), shape), 1..=4),
+        0u8..=max_retries,
+        0u8..=max_retries,
+        0u8..=max_retries,
+        0u8..=max_interventions,
+        prop::option::of(0.05f64..0.5),
+    )
+        .prop_map(
+            |(throws, extract, handover, perception, interventions, thread)| {
+                let budgets = Budgets {
+                    extract,
+                    handover,
+                    perception,
+                    interventions,
+                };
+                let templates: Vec<usize> = throws.iter().map(|(t, _)| *t).collect();
+                let mut plan = plan_from(&templates, budgets);
+                plan.thread_length_m = thread;
+                for (throw, (t, shape)) in plan.throws.iter_mut().zip(throws) {
+                    let steps = || {
+                        template_steps(t, budgets)
+                            .into_iter()
+                            .map(Node::Step)
+                            .collect::<Vec<_>>()
+                    };
+                    let query = |name: &str| {
+                        let mut kind = StepKind::default_for(name).expect("a known step");
+                        kind.set("retries", Value::Count(i64::from(budgets.perception)))
+                            .expect("retries");
+                        Node::Step(Step {
+                            kind,
+                            pos: SourcePos::default(),
+                        })
+                    };
+                    let mut body = Vec::new();
+                    match shape {
+                        Shape::Plain => body = steps(),
+                        Shape::WhenFirst(cond) => {
+                            body.push(Node::When {
+                                cond,
+                                then: vec![query("estimate_needle")],
+                                otherwise: vec![query("track_thread")],
+                                pos: SourcePos::default(),
+                            });
+                            body.extend(steps());
+                        }
+                        Shape::RepeatFirst(max, until) => {
+                            body.push(Node::Repeat {
+                                max,
+                                until,
+                                body: vec![query("estimate_needle")],
+                                pos: SourcePos::default(),
+                            });
+                            body.extend(steps());
+                        }
+                        Shape::Branches(cond, other) => body.push(Node::When {
+                            cond,
+                            then: steps(),
+                            otherwise: template_steps(other, budgets)
+                                .into_iter()
+                                .map(Node::Step)
+                                .collect(),
+                            pos: SourcePos::default(),
+                        }),
+                        Shape::Checkpoint => {
+                            body.push(Node::Checkpoint {
+                                label: "go on".into(),
+                                pos: SourcePos::default(),
+                            });
+                            body.extend(steps());
+                        }
+                    }
+                    *throw = Throw::new(throw.point.clone(), body, SourcePos::default());
+                }
+                plan
             },
         )
 }

@@ -1,6 +1,7 @@
-//! Properties of the engine for arbitrary plans (budgets up to beyond the caps) and arbitrary
-//! outcome schedules. Each property runs `STITCH_PROPTEST_CASES` cases (default 4,000; seven
-//! properties make 28,000 cases per `cargo test`).
+//! Properties of the engine for arbitrary plans (budgets up to beyond the caps; plain and
+//! conditional: arbitrary conditions in when, repeat and checkpoints) and arbitrary outcome
+//! schedules and condition values. Each property runs `STITCH_PROPTEST_CASES` cases (default
+//! 4,000; the model-checking property a tenth of that).
 //!
 //! Counts are taken from what the scripted primitives and supervisor saw, not from the
 //! engine's own bookkeeping, so a bug in the engine's counters cannot hide itself.
@@ -12,7 +13,10 @@ use stitch_engine::{
     SupervisorCommand,
 };
 use stitch_primitives::{Scripted, StepKind};
-use stitch_tests::{Run, cases, commands, interventions, plans, run_scripted, token};
+use stitch_tests::{
+    Run, cases, commands, conditional_plans, conditional_plans_with, interventions, plans,
+    run_scripted, run_scripted_deciding, token,
+};
 
 const DEFAULT_CASES: u32 = 4_000;
 
@@ -30,7 +34,10 @@ fn retries_seen(run: &Run, pick: fn(&StepKind) -> bool) -> Vec<((usize, usize), 
     let calls = &run.primitives.calls;
     let mut attempts: BTreeMap<(usize, usize), usize> = BTreeMap::new();
     for c in calls {
-        if pick(&run.plan.throws[c.throw].steps[c.step].kind) {
+        if run.plan.throws[c.throw]
+            .step(c.step)
+            .is_some_and(|s| pick(&s.kind))
+        {
             *attempts.entry((c.throw, c.step)).or_default() += 1;
         }
     }
@@ -56,14 +63,20 @@ fn expected_class(plan: &Plan, throw: usize, step: usize, token: Scripted) -> Fa
     if token == Scripted::Thread {
         return FailureClass::Thread;
     }
-    let steps = &plan.throws[throw].steps;
-    match steps[step].kind {
+    let program = &plan.throws[throw].program;
+    let Some(this) = program[step].step() else {
+        return FailureClass::Insertion;
+    };
+    match this.kind {
         StepKind::Insert(_) | StepKind::Correct(_) => FailureClass::Insertion,
         StepKind::Extract(_) => FailureClass::Extraction,
         StepKind::Handover(_) => FailureClass::Handover,
         StepKind::Sweep(_) | StepKind::Cinch(_) | StepKind::TrackThread(_) => FailureClass::Thread,
         StepKind::EstimateNeedle(_) => {
-            let before: Vec<&str> = steps[..step].iter().map(|s| s.kind.name()).collect();
+            let before: Vec<&str> = program[..step]
+                .iter()
+                .filter_map(|o| Some(o.step()?.kind.name()))
+                .collect();
             let pos = |n: &str| before.iter().rposition(|b| *b == n);
             match (pos("insert"), pos("extract"), pos("handover")) {
                 (_, _, Some(_)) => FailureClass::Insertion,
@@ -85,7 +98,7 @@ proptest! {
         cmds in commands(3),
         ivs in interventions(),
     ) {
-        let asked = plan.throws.iter().flat_map(|t| &t.steps).find_map(|s| match s.kind {
+        let asked = plan.throws.iter().flat_map(|t| t.steps()).find_map(|(_, s)| match s.kind {
             StepKind::Extract(p) => Some(p.retries),
             _ => None,
         }).unwrap_or(0);
@@ -103,7 +116,7 @@ proptest! {
         cmds in commands(3),
         ivs in interventions(),
     ) {
-        let asked = plan.throws.iter().flat_map(|t| &t.steps).find_map(|s| match s.kind {
+        let asked = plan.throws.iter().flat_map(|t| t.steps()).find_map(|(_, s)| match s.kind {
             StepKind::Handover(p) => Some(p.retries),
             _ => None,
         }).unwrap_or(0);
@@ -139,7 +152,7 @@ proptest! {
         let run = run_scripted(plan, outcomes, cmds, ivs);
         let last = run.report.journal.records().last().map(|r| r.entry.clone());
         prop_assert_eq!(last, Some(Entry::Finished { outcome: run.report.outcome.clone() }));
-        let steps: Vec<usize> = run.plan.throws.iter().map(|t| t.steps.len()).collect();
+        let steps: Vec<usize> = run.plan.throws.iter().map(|t| t.program.len()).collect();
         match &run.report.outcome {
             RunOutcome::Completed => {
                 // Every step of every throw succeeded on its last attempt.
@@ -215,7 +228,7 @@ proptest! {
     ) {
         let run = run_scripted(plan, outcomes, cmds, ivs);
         let records = run.report.journal.records();
-        let steps: Vec<usize> = run.plan.throws.iter().map(|t| t.steps.len()).collect();
+        let steps: Vec<usize> = run.plan.throws.iter().map(|t| t.program.len()).collect();
         // The whole journal: exactly what the runner kept (`stitch journal show` prints what
         // `stitch run` printed).
         let whole = Rebuilt::from_journal(records, Some(&steps)).expect("its own journal");
@@ -235,6 +248,109 @@ proptest! {
                     prop_assert_eq!((a.step, a.attempt, &a.outcome), (b.step, b.attempt, &b.outcome));
                 }
             }
+        }
+    }
+}
+
+/// Checkpoint answers, `go` mostly.
+fn answers() -> impl Strategy<Value = Vec<SupervisorCommand>> {
+    prop::collection::vec(
+        prop_oneof![
+            6 => Just(SupervisorCommand::Go),
+            1 => Just(SupervisorCommand::Abort),
+            1 => Just(SupervisorCommand::EStop),
+            1 => Just(SupervisorCommand::TakeOver),
+        ],
+        0..4,
+    )
+}
+
+proptest! {
+    #![proptest_config(config())]
+
+    #[test]
+    fn conditional_plans_keep_every_bound_end_and_journal_their_decisions(
+        plan in conditional_plans(),
+        outcomes in prop::collection::vec(token(), 0..150),
+        cmds in commands(3),
+        ivs in interventions(),
+        values in prop::collection::vec(any::<bool>(), 0..40),
+        checkpoints in answers(),
+    ) {
+        let budget = usize::from(plan.interventions);
+        let run = run_scripted_deciding(plan, outcomes, cmds, ivs, values.clone(), checkpoints);
+        let records = run.report.journal.records();
+        // Retries and interventions stay within the plan's asks and the caps, on every path.
+        for (at, retries) in retries_seen(&run, |k| k.retries().is_some()) {
+            let step = run.plan.throws[at.0].step(at.1).expect("a step");
+            let asked = usize::from(step.kind.retries().unwrap_or(0));
+            prop_assert!(retries <= 5 && retries <= asked, "{retries} retries at {at:?}, asked {asked}");
+        }
+        let requests = run.supervisor.requests.len();
+        prop_assert!(requests <= 2 && requests <= budget, "{requests} interventions, budget {budget}");
+        // Conditions took the scheduled values, in order (true past the schedule), and the
+        // journal says so; a repeat never runs past its cap.
+        let decided: Vec<bool> = records.iter().filter_map(|r| match &r.entry {
+            Entry::Condition { value, role, .. } => {
+                if let stitch_engine::BranchRole::Until { run } = role {
+                    assert!(*run <= stitch_engine::caps::REPEAT);
+                }
+                Some(*value)
+            }
+            _ => None,
+        }).collect();
+        for (i, v) in decided.iter().enumerate() {
+            prop_assert_eq!(*v, values.get(i).copied().unwrap_or(true), "condition {}", i);
+        }
+        prop_assert_eq!(&decided, &run.primitives.decided);
+        // The run ends, and a completed run finished every throw.
+        let last = records.last().map(|r| r.entry.clone());
+        prop_assert_eq!(last, Some(Entry::Finished { outcome: run.report.outcome.clone() }));
+        if run.report.outcome == RunOutcome::Completed {
+            prop_assert!(run.report.throws.iter().all(|t| t.completed));
+            for (ti, _) in run.plan.throws.iter().enumerate() {
+                prop_assert!(run.primitives.calls.iter().any(|c| c.throw == ti), "throw {} ran no step", ti);
+            }
+            let mut last_call = BTreeMap::new();
+            for c in &run.primitives.calls {
+                last_call.insert((c.throw, c.step), c.token);
+            }
+            prop_assert!(last_call.values().all(|t| *t == Scripted::Ok));
+        }
+        // Nothing moves after an abort or e-stop, and the arms hold at the end of a stop.
+        let stop = records.iter().position(|r| matches!(r.entry,
+            Entry::Supervisor { command: SupervisorCommand::Abort | SupervisorCommand::EStop, acted: true }));
+        if let Some(stop) = stop {
+            let aborted = matches!(run.report.outcome, RunOutcome::Aborted { .. });
+            prop_assert!(aborted, "{:?}", run.report.outcome);
+            let moved = records[stop..].iter().any(|r| matches!(r.entry, Entry::StepStart { .. } | Entry::Condition { .. }));
+            prop_assert!(!moved, "a step or a condition after the stop");
+        }
+        if matches!(run.report.outcome, RunOutcome::Aborted { .. } | RunOutcome::Failed { .. }) {
+            prop_assert_eq!(run.primitives.holds.last().copied(), Some(run.primitives.calls.len()));
+        }
+        // The journal rebuilds the runner's own report.
+        let steps: Vec<usize> = run.plan.throws.iter().map(|t| t.program.len()).collect();
+        let whole = Rebuilt::from_journal(records, Some(&steps)).expect("its own journal");
+        prop_assert_eq!(&whole.throws, &run.report.throws);
+        prop_assert_eq!(whole.outcome.as_ref(), Some(&run.report.outcome));
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: cases(DEFAULT_CASES) / 10, ..config() })]
+
+    #[test]
+    fn the_model_checker_finds_every_property_holding_on_valid_conditional_plans(
+        plan in conditional_plans_with(5, 2),
+    ) {
+        let mut plan = plan;
+        plan.throws.truncate(2);
+        plan.thread_length_m.get_or_insert(0.3);
+        stitch_engine::validate(&plan).map_err(|e| TestCaseError::fail(e.to_string()))?;
+        let found = stitch_engine::explore(std::sync::Arc::new(plan), stitch_engine::ExploreOptions::default());
+        for v in &found.verdicts {
+            prop_assert!(v.holds, "{} fails: {:?}", v.says, v.path);
         }
     }
 }

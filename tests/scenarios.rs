@@ -298,7 +298,8 @@ fn the_journal_records_transitions_with_simulated_time() {
 #[test]
 fn an_unvalidated_plan_with_an_empty_throw_still_runs_the_throws_after_it() {
     let mut plan = plan_from(&[SENSING_ONLY; 3], budgets(5, 5, 0));
-    plan.throws[1].steps.clear();
+    plan.throws[1].program.clear();
+    plan.throws[1].body.clear();
     let run = run_scripted(plan, vec![], vec![], vec![]);
     assert_eq!(run.report.outcome, RunOutcome::Completed);
     let throws: Vec<usize> = run.primitives.calls.iter().map(|c| c.throw).collect();

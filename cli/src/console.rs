@@ -3,10 +3,13 @@
 
 use std::io::BufRead;
 use std::sync::mpsc::{Receiver, TryRecvError};
-use stitch_engine::{InterventionRequest, InterventionResult, Supervisor, SupervisorCommand};
+use stitch_engine::{
+    CheckpointRequest, InterventionRequest, InterventionResult, Supervisor, SupervisorCommand,
+};
 
 /// What the surgeon types: `pause`, `resume`, `abort`, `e-stop`, `take-over`, `hand-back`
-/// at any time (read before the next step), and `done` or `failed` to end an intervention.
+/// at any time (read before the next step), `done` or `failed` to end an intervention, and
+/// `go` to confirm a plan's checkpoint.
 /// End of input (Ctrl-D, a closed pipe) while the run waits on the surgeon aborts it.
 pub struct ConsoleSupervisor {
     lines: Receiver<String>,
@@ -124,6 +127,34 @@ impl Supervisor for ConsoleSupervisor {
                     "supervisor: `{other}`: type `done` when the workspace is ready, or \
                      `failed`"
                 )),
+            }
+        }
+    }
+
+    fn checkpoint(&mut self, request: &CheckpointRequest) -> Option<SupervisorCommand> {
+        (self.say)(&format!(
+            "supervisor: checkpoint before throw {} goes on: \"{}\". The arms hold. Type `go` \
+             to confirm, or abort, e-stop, take-over.",
+            request.throw + 1,
+            request.label
+        ));
+        loop {
+            let Ok(line) = self.lines.recv() else {
+                (self.say)("supervisor: end of input: the run aborts, arms held");
+                return None;
+            };
+            match self.command(&line) {
+                Some(
+                    c @ (SupervisorCommand::Go
+                    | SupervisorCommand::Abort
+                    | SupervisorCommand::EStop
+                    | SupervisorCommand::TakeOver),
+                ) => return Some(c),
+                Some(other) => (self.say)(&format!(
+                    "supervisor: `{other}` does not answer a checkpoint: type go, abort, e-stop \
+                     or take-over"
+                )),
+                None => {}
             }
         }
     }

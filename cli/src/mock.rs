@@ -2,7 +2,8 @@
 
 use std::sync::Arc;
 use stitch_engine::{
-    InterventionRequest, InterventionResult, NeedleHolder, Plan, Supervisor, SupervisorCommand,
+    CheckpointRequest, InterventionRequest, InterventionResult, NeedleHolder, Plan, Supervisor,
+    SupervisorCommand,
 };
 use stitch_primitives::StepKind;
 use stitch_sim::{MockDvrk, NeedlePlace};
@@ -52,12 +53,17 @@ impl Supervisor for MockSupervisor {
         None
     }
 
+    /// The simulated supervisor confirms every checkpoint.
+    fn checkpoint(&mut self, _request: &CheckpointRequest) -> Option<SupervisorCommand> {
+        Some(SupervisorCommand::Go)
+    }
+
     fn intervene(&mut self, request: &InterventionRequest) -> InterventionResult {
         let step = self
             .plan
             .throws
             .get(request.throw)
-            .and_then(|t| t.steps.get(request.step));
+            .and_then(|t| t.step(request.step));
         let needs = match step.map(|s| &s.kind) {
             Some(StepKind::Insert(_) | StepKind::Correct(_)) => NeedlePlace::Right,
             Some(StepKind::Sweep(_) | StepKind::Extract(_)) => NeedlePlace::Tissue,

@@ -53,7 +53,7 @@ pub fn run_info(s: &RunSettings<'_>) -> anyhow::Result<RunInfo> {
             .plan
             .throws
             .iter()
-            .map(|t| t.steps.len().to_string())
+            .map(|t| t.program.len().to_string())
             .collect::<Vec<_>>()
             .join(","),
     );

@@ -11,11 +11,13 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 use stitch_dvrk::msg::{JointState, OperatingState, PoseStamped};
 use stitch_engine::{
-    Entry, InterventionRequest, InterventionResult, Loaded, OutcomeSchedule, PlanLoader, Rebuilt,
-    Record, Runner, ScriptLimits, Supervisor, SupervisorCommand, TimedCommand, validate,
+    CheckpointRequest, Entry, InterventionRequest, InterventionResult, Loaded, OutcomeSchedule,
+    PlanLoader, Rebuilt, Record, Runner, ScriptLimits, Supervisor, SupervisorCommand, TimedCommand,
+    validate,
 };
 use stitch_primitives::{
-    Failure, FailureKind, Measurements, PrimitiveError, Primitives, StepOutcome, StepRequest,
+    Failure, FailureKind, Measurements, Observation, ObserveRequest, PrimitiveError, Primitives,
+    StepOutcome, StepRequest,
 };
 use stitch_recorder::{Recorded, RunInfo};
 use stitch_robot::{SimClock, Wound, WoundSpec};
@@ -406,6 +408,7 @@ struct RecordedOutcomes {
     clock: SimClock,
     attempts: usize,
     ran_out: std::rc::Rc<std::cell::RefCell<RanOut>>,
+    conditions: std::collections::VecDeque<bool>,
 }
 
 impl Primitives for RecordedOutcomes {
@@ -442,6 +445,33 @@ impl Primitives for RecordedOutcomes {
         }
     }
 
+    /// The recording's condition values, in the order they were decided (a what-if plan with
+    /// other conditions decides its own in that order); past them, the replay stops.
+    fn observe(&mut self, req: &ObserveRequest<'_>) -> Observation {
+        match self.conditions.pop_front() {
+            Some(v) => Observation {
+                scripted: Some(v),
+                ..Observation::default()
+            },
+            None => {
+                let mut r = self.ran_out.borrow_mut();
+                if r.at.is_none() {
+                    r.at = Some((
+                        self.attempts,
+                        format!(
+                            "throw {} decides more conditions than the recording holds",
+                            req.throw + 1
+                        ),
+                    ));
+                }
+                Observation {
+                    scripted: Some(false),
+                    ..Observation::default()
+                }
+            }
+        }
+    }
+
     fn hold_all(&mut self) -> Result<(), PrimitiveError> {
         Ok(())
     }
@@ -452,6 +482,7 @@ impl Primitives for RecordedOutcomes {
 struct RecordedSupervisor {
     commands: std::collections::VecDeque<TimedCommand>,
     interventions: std::collections::VecDeque<InterventionResult>,
+    checkpoints: std::collections::VecDeque<SupervisorCommand>,
     ran_out: std::rc::Rc<std::cell::RefCell<RanOut>>,
     attempts: usize,
 }
@@ -474,6 +505,27 @@ impl Supervisor for RecordedSupervisor {
             return Some(SupervisorCommand::Abort);
         }
         self.commands.pop_front().map(|c| c.command)
+    }
+
+    fn checkpoint(&mut self, request: &CheckpointRequest) -> Option<SupervisorCommand> {
+        if self.ran_out.borrow().at.is_some() {
+            return Some(SupervisorCommand::Abort);
+        }
+        match self.checkpoints.pop_front() {
+            Some(c) => Some(c),
+            None => {
+                let mut r = self.ran_out.borrow_mut();
+                r.at = Some((
+                    self.attempts,
+                    format!(
+                        "throw {} reaches a checkpoint (\"{}\") the recording does not hold",
+                        request.throw + 1,
+                        request.label
+                    ),
+                ));
+                Some(SupervisorCommand::Abort)
+            }
+        }
     }
 
     fn intervene(&mut self, request: &InterventionRequest) -> InterventionResult {
@@ -528,9 +580,19 @@ fn what_if(rec: &Recording, other: &Path) -> anyhow::Result<u8> {
         BTreeMap::new();
     let mut commands = std::collections::VecDeque::new();
     let mut interventions = std::collections::VecDeque::new();
+    let mut conditions = std::collections::VecDeque::new();
+    let mut checkpoints = std::collections::VecDeque::new();
+    let mut at_checkpoint = false;
     let (mut started, mut started_at) = (0usize, 0.0);
     for r in records {
         match &r.entry {
+            Entry::Condition { value, .. } => conditions.push_back(*value),
+            Entry::Checkpoint { .. } => at_checkpoint = true,
+            // The answer to a checkpoint is the next command.
+            Entry::Supervisor { command, .. } if at_checkpoint => {
+                at_checkpoint = false;
+                checkpoints.push_back(*command);
+            }
             Entry::StepStart { .. } => {
                 started += 1;
                 started_at = r.t_s;
@@ -564,10 +626,12 @@ fn what_if(rec: &Recording, other: &Path) -> anyhow::Result<u8> {
         clock: clock.clone(),
         attempts: 0,
         ran_out: std::rc::Rc::clone(&ran_out),
+        conditions,
     };
     let mut supervisor = RecordedSupervisor {
         commands,
         interventions,
+        checkpoints,
         ran_out: std::rc::Rc::clone(&ran_out),
         attempts: 0,
     };

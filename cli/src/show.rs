@@ -2,7 +2,7 @@
 
 use std::fmt::Write;
 use stitch_engine::{
-    InterventionResult, Plan, PlanHeader, Rebuilt, Report, RunOutcome, caps, retry_cap,
+    InterventionResult, Node, Plan, PlanHeader, Rebuilt, Report, RunOutcome, caps, retry_cap,
 };
 use stitch_primitives::{StepOutcome, Value};
 
@@ -24,6 +24,9 @@ pub fn plan_tree(plan: &Plan) -> String {
         plan.interventions,
         caps::INTERVENTIONS
     );
+    if let Some(l) = plan.thread_length_m {
+        let _ = writeln!(s, "  thread: {:.1} cm", l * 100.0);
+    }
     for (i, throw) in plan.throws.iter().enumerate() {
         let _ = writeln!(
             s,
@@ -34,35 +37,84 @@ pub fn plan_tree(plan: &Plan) -> String {
             mm(&throw.point.exit),
             throw.pos.line
         );
-        for (j, step) in throw.steps.iter().enumerate() {
-            let params: Vec<String> = step
-                .kind
-                .param_specs()
-                .iter()
-                .filter_map(|spec| {
-                    let v = step.kind.get(spec.name)?;
-                    Some(match v {
-                        Value::Length(m) => format!("{} {:.1} mm", spec.name, m * 1e3),
-                        Value::Angle(r) => format!("{} {:.1}°", spec.name, r.to_degrees()),
-                        Value::Count(n) if spec.name == "retries" => {
-                            let cap = retry_cap(&step.kind).map_or(0, |c| c.0);
-                            format!("retries {n} (cap {cap})")
-                        }
-                        Value::Count(n) => format!("{} {n}", spec.name),
-                    })
-                })
-                .collect();
-            let _ = writeln!(
-                s,
-                "    {}. {:<15} {}  (line {})",
-                j + 1,
-                step.kind.name(),
-                params.join(", "),
-                step.pos.line
-            );
-        }
+        let mut n = 0;
+        nodes_tree(&mut s, &throw.body, 4, &mut n);
     }
     s
+}
+
+/// `nodes` at this indentation; steps numbered in script order from `n`.
+fn nodes_tree(s: &mut String, nodes: &[Node], indent: usize, n: &mut usize) {
+    let pad = " ".repeat(indent);
+    for node in nodes {
+        match node {
+            Node::Step(step) => {
+                *n += 1;
+                let params: Vec<String> = step
+                    .kind
+                    .param_specs()
+                    .iter()
+                    .filter_map(|spec| {
+                        let v = step.kind.get(spec.name)?;
+                        Some(match v {
+                            Value::Length(m) => format!("{} {:.1} mm", spec.name, m * 1e3),
+                            Value::Angle(r) => format!("{} {:.1}°", spec.name, r.to_degrees()),
+                            Value::Count(n) if spec.name == "retries" => {
+                                let cap = retry_cap(&step.kind).map_or(0, |c| c.0);
+                                format!("retries {n} (cap {cap})")
+                            }
+                            Value::Count(n) => format!("{} {n}", spec.name),
+                        })
+                    })
+                    .collect();
+                let _ = writeln!(
+                    s,
+                    "{pad}{}. {:<15} {}  (line {})",
+                    n,
+                    step.kind.name(),
+                    params.join(", "),
+                    step.pos.line
+                );
+            }
+            Node::When {
+                cond,
+                then,
+                otherwise,
+                pos,
+            } => {
+                let _ = writeln!(s, "{pad}when {cond}  (line {})", pos.line);
+                nodes_tree(s, then, indent + 3, n);
+                if !otherwise.is_empty() {
+                    let _ = writeln!(s, "{pad}otherwise");
+                    nodes_tree(s, otherwise, indent + 3, n);
+                }
+            }
+            Node::Repeat {
+                max,
+                until,
+                body,
+                pos,
+            } => {
+                let until = until.as_ref().map_or(String::new(), |c| {
+                    format!(", stop when {c} (checked before each run)")
+                });
+                let _ = writeln!(
+                    s,
+                    "{pad}repeat at most {max} times (engine cap {}){until}  (line {})",
+                    caps::REPEAT,
+                    pos.line
+                );
+                nodes_tree(s, body, indent + 3, n);
+            }
+            Node::Checkpoint { label, pos } => {
+                let _ = writeln!(
+                    s,
+                    "{pad}checkpoint \"{label}\": the arms hold until the surgeon says go  (line {})",
+                    pos.line
+                );
+            }
+        }
+    }
 }
 
 fn outcome_text(o: &StepOutcome) -> String {

@@ -13,7 +13,7 @@
 //! supervisor's commands per path. Together they make every path finite.
 
 use crate::machine::{Ctx, Cursor, Effect, Event, Mission, Pending, State, pending, state_parts};
-use crate::plan::{NeedleHolder, Plan, caps};
+use crate::plan::{NeedleHolder, Op, Plan, caps};
 use crate::schedule::OutcomeSchedule;
 use crate::supervisor::{InterventionResult, SupervisorCommand, TimedCommand};
 use stateright::{Checker, Model, Property};
@@ -129,10 +129,10 @@ impl ExploreState {
         pending(self.machine.state()) == Pending::Done
     }
 
-    fn key(&self) -> (&State, u8, &World) {
+    fn key(&self) -> (&State, crate::machine::Counters, &World) {
         (
             self.machine.state(),
-            self.machine.inner().interventions_used(),
+            self.machine.inner().counters(),
             &self.world,
         )
     }
@@ -151,8 +151,8 @@ impl fmt::Debug for ExploreState {
     }
 }
 
-// The machine's behaviour depends only on its state and its intervention count (the plan is
-// shared by all states), so those and the world identify a model state.
+// The machine's behaviour depends only on its state and its counters (the plan is shared by
+// all states), so those and the world identify a model state.
 impl Hash for ExploreState {
     fn hash<H: Hasher>(&self, h: &mut H) {
         self.key().hash(h);
@@ -178,6 +178,10 @@ pub enum Action {
     Intervention(InterventionResult),
     /// The supervisor is gone while the run waits for a command.
     SupervisorGone,
+    /// The plan's condition has this value.
+    Decide(bool),
+    /// The supervisor answers a checkpoint.
+    Checkpoint(SupervisorCommand),
 }
 
 impl fmt::Display for Action {
@@ -188,6 +192,8 @@ impl fmt::Display for Action {
             Action::Intervention(InterventionResult::Recovered) => f.write_str("recovered"),
             Action::Intervention(InterventionResult::Failed) => f.write_str("intervention failed"),
             Action::SupervisorGone => f.write_str("supervisor gone"),
+            Action::Decide(v) => write!(f, "condition {v}"),
+            Action::Checkpoint(c) => write!(f, "checkpoint: {c}"),
         }
     }
 }
@@ -292,7 +298,7 @@ impl EngineModel {
         let global = |c: &Cursor| {
             self.plan.throws[..c.throw.min(self.plan.throws.len())]
                 .iter()
-                .map(|t| t.steps.len())
+                .map(|t| t.program.len())
                 .sum::<usize>()
                 + c.step
         };
@@ -307,8 +313,13 @@ impl EngineModel {
                 u32::from(c.retries) + u32::from(interventions),
                 0,
             )),
+            Pending::Decide(c) => Some((
+                global(&c),
+                u32::from(c.retries) + u32::from(interventions),
+                1,
+            )),
             Pending::Start => Some((0, 0, 0)),
-            Pending::Command(_) | Pending::Done => None,
+            Pending::Command(_) | Pending::Checkpoint(_) | Pending::Done => None,
         }
     }
 
@@ -374,6 +385,32 @@ impl Model for EngineModel {
                 actions.push(Action::Intervention(InterventionResult::Recovered));
                 actions.push(Action::Intervention(InterventionResult::Failed));
             }
+            Pending::Decide(c) => {
+                let mission = s.machine.inner();
+                let known = match mission.op(c) {
+                    Some(Op::Branch { cond, .. }) => cond.eval_known(&mission.facts(c)),
+                    _ => Some(false),
+                };
+                match known {
+                    Some(v) => actions.push(Action::Decide(v)),
+                    None => actions.extend([Action::Decide(true), Action::Decide(false)]),
+                }
+            }
+            Pending::Checkpoint(_) => {
+                // Go is always possible, so a path never stalls at the command bound.
+                actions.push(Action::Checkpoint(SupervisorCommand::Go));
+                if more_commands {
+                    actions.extend(
+                        [
+                            SupervisorCommand::TakeOver,
+                            SupervisorCommand::Abort,
+                            SupervisorCommand::EStop,
+                        ]
+                        .map(Action::Checkpoint),
+                    );
+                }
+                actions.push(Action::SupervisorGone);
+            }
             Pending::Command(_) => {
                 let paused = matches!(s.machine.state(), State::Paused { .. });
                 // Going on is always possible, so a path never stalls at the command bound.
@@ -421,9 +458,18 @@ impl Model for EngineModel {
                 let outcome = token.outcome_for(&kind, c.throw + 1);
                 Self::dispatch(&mut s.machine, Event::StepFinished(outcome));
             }
-            (Pending::Attempt(_) | Pending::Command(_), Action::Command(command)) => {
+            (Pending::Decide(_), Action::Decide(v)) => {
+                if s.world.stopped {
+                    s.world.violate(Violation::MotionAfterStop);
+                }
+                Self::dispatch(&mut s.machine, Event::Decided(v));
+            }
+            (Pending::Attempt(_) | Pending::Command(_), Action::Command(command))
+            | (Pending::Checkpoint(_), Action::Checkpoint(command)) => {
                 by_supervisor = true;
-                s.world.commands = s.world.commands.saturating_add(1);
+                if command != SupervisorCommand::Go {
+                    s.world.commands = s.world.commands.saturating_add(1);
+                }
                 let effects = Self::dispatch(&mut s.machine, Event::Supervisor(command));
                 if matches!(command, SupervisorCommand::Abort | SupervisorCommand::EStop)
                     && matches!(s.machine.state(), State::Aborted { .. })
@@ -434,7 +480,7 @@ impl Model for EngineModel {
                     }
                 }
             }
-            (Pending::Command(_), Action::SupervisorGone) => {
+            (Pending::Command(_) | Pending::Checkpoint(_), Action::SupervisorGone) => {
                 by_supervisor = true;
                 Self::dispatch(&mut s.machine, Event::SupervisorLost);
             }
@@ -807,6 +853,8 @@ pub fn schedule_of(actions: impl IntoIterator<Item = Action>) -> OutcomeSchedule
                 });
             }
             Action::Intervention(r) => schedule.interventions.push(r),
+            Action::Decide(v) => schedule.conditions.push(v),
+            Action::Checkpoint(c) => schedule.checkpoints.push(c),
             Action::SupervisorGone => {}
         }
     }

@@ -2,12 +2,13 @@
 //! command and hold, with simulated time, as JSON Lines. The same seed gives the same journal,
 //! byte for byte: records hold no wall-clock time, no addresses and no unordered maps.
 
-use crate::plan::FailureClass;
+use crate::condition::MissionFacts;
+use crate::plan::{BranchRole, FailureClass};
 use crate::supervisor::{InterventionResult, SupervisorCommand};
 use serde::{Deserialize, Serialize};
 use std::io::{self, Write};
 use std::time::Duration;
-use stitch_primitives::{FailureKind, StepOutcome};
+use stitch_primitives::{FailureKind, Observation, StepOutcome};
 
 /// Why a run was aborted.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
@@ -142,6 +143,32 @@ pub enum Entry {
         command: SupervisorCommand,
         /// Whether the machine acted on it (a resume while running is ignored).
         acted: bool,
+    },
+    /// A plan's condition was decided.
+    Condition {
+        /// Throw index, 0-based.
+        throw: usize,
+        /// Program index, 0-based.
+        step: usize,
+        /// The condition, as the script writes it.
+        condition: String,
+        /// The construct: `when`, or `until` before run N of a repeat.
+        role: BranchRole,
+        /// Its value.
+        value: bool,
+        /// What the robot observed for it.
+        observation: Observation,
+        /// What the engine knew.
+        mission: MissionFacts,
+    },
+    /// The plan reached a checkpoint; the arms hold until the surgeon says go.
+    Checkpoint {
+        /// Throw index, 0-based.
+        throw: usize,
+        /// Program index, 0-based.
+        step: usize,
+        /// What the surgeon confirms.
+        label: String,
     },
     /// The arms were told to hold.
     Hold {

@@ -1,9 +1,11 @@
 #![doc = include_str!("../README.md")]
 
+mod condition;
 mod explore;
 mod journal;
 mod machine;
 mod plan;
+mod reference;
 mod runner;
 mod schedule;
 mod script;
@@ -11,24 +13,27 @@ mod supervisor;
 pub mod trials;
 mod validate;
 
+pub use condition::{Cmp, Condition, End, Facts, MissionFacts, Quantity, Target, Unit};
 pub use explore::{
     Action, EngineModel, Exploration, ExploreOptions, ExploreState, Needle, PROPERTY_NAMES,
     Verdict, Violation, World, explore, mermaid, schedule_of,
 };
 pub use journal::{AbortCause, Entry, Journal, JournalSink, Record, RunOutcome};
 pub use machine::{
-    Ctx, Cursor, Effect, Event, Mission, Pending, State, pending, recovery_condition, state_label,
-    state_parts,
+    Counters, Ctx, Cursor, Effect, Event, Mission, Pending, State, pending, recovery_condition,
+    state_label, state_parts,
 };
 pub use plan::{
-    FailureClass, NeedleHolder, Plan, PlanError, PlanErrors, SourcePos, Step, Throw, caps,
+    BranchRole, FailureClass, NeedleHolder, Node, Op, Plan, PlanError, PlanErrors, SourcePos, Step,
+    Throw, caps,
 };
+pub use reference::{REFERENCE_BEGIN, REFERENCE_END, reference_markdown};
 pub use runner::{Attempt, PlanHeader, Rebuilt, Report, Runner, ThrowSummary, UnderWay};
 pub use schedule::{OutcomeSchedule, ScheduleError};
-pub use script::{API, Angle, Length, Loaded, PlanLoader, ScriptLimits};
+pub use script::{API, Angle, Length, Loaded, PlanLoader, ScriptLimits, Time};
 pub use supervisor::{
-    InterventionRequest, InterventionResult, ScriptedSupervisor, Supervisor, SupervisorCommand,
-    TimedCommand,
+    CheckpointRequest, InterventionRequest, InterventionResult, ScriptedSupervisor, Supervisor,
+    SupervisorCommand, TimedCommand,
 };
 pub use validate::{retry_cap, validate};
 

@@ -6,6 +6,8 @@
 //! │   └── throw                   pause → paused; take-over → taken_over
 //! │       ├── inserting · sweeping · extracting · cinching · handing_over · correcting
 //! │       │   · perceiving        (one per phase: the step being attempted)
+//! │       ├── deciding            (a plan's condition: when, repeat's until)
+//! │       ├── at_checkpoint       (the arms hold until the surgeon says go)
 //! │       └── awaiting_intervention
 //! ├── paused                      resume → the step that was next
 //! └── taken_over                  hand-back → the step that was next
@@ -16,8 +18,9 @@
 //! dispatches the outcome. The hard caps (retries, interventions) are guards here, so no plan
 //! can exceed them whatever it asks for.
 
+use crate::condition::{MissionFacts, Quantity};
 use crate::journal::{AbortCause, Entry, Journal};
-use crate::plan::{FailureClass, Plan, caps};
+use crate::plan::{FailureClass, Op, Plan, caps};
 use crate::supervisor::{InterventionResult, SupervisorCommand};
 use serde::Serialize;
 use statig::prelude::*;
@@ -29,7 +32,7 @@ use stitch_primitives::{Failure, FailureKind, StepKind, StepOutcome};
 pub struct Cursor {
     /// Throw index, 0-based.
     pub throw: usize,
-    /// Step index within the throw, 0-based.
+    /// Index into the throw's program, 0-based (a plan without constructs: the step index).
     pub step: usize,
     /// Retries of this step so far.
     pub retries: u8,
@@ -42,6 +45,8 @@ pub enum Event {
     Start,
     /// The step the machine is in finished one attempt.
     StepFinished(StepOutcome),
+    /// The condition the machine is deciding has this value.
+    Decided(bool),
     /// The requested intervention ended.
     InterventionFinished(InterventionResult),
     /// The supervisor commanded.
@@ -66,11 +71,25 @@ pub struct Ctx {
     pub effects: Vec<Effect>,
 }
 
+/// The mission's counters that conditions may read and that decide the machine's behaviour
+/// (what identifies a machine beside its state, for the model checker).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub struct Counters {
+    /// Interventions requested so far.
+    pub interventions_used: u8,
+    /// Retries granted in the current throw (kept only if a condition reads them).
+    pub throw_retries: u8,
+    /// Thread the cinches pulled, µm (kept only if a condition reads it).
+    pub thread_used_um: u64,
+}
+
 /// The machine's shared storage: the plan and the mission's counters.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Mission {
     plan: Arc<Plan>,
-    interventions_used: u8,
+    counters: Counters,
+    tracks_retries: bool,
+    tracks_thread: bool,
     last_failure: Option<Failure>,
 }
 
@@ -79,10 +98,37 @@ impl Mission {
     /// enforces the hard caps even if it was not.
     pub fn new(plan: Arc<Plan>) -> Self {
         Self {
+            tracks_retries: plan.reads(&Quantity::RetriesUsed),
+            tracks_thread: plan.reads(&Quantity::ThreadLeft),
             plan,
-            interventions_used: 0,
+            counters: Counters::default(),
             last_failure: None,
         }
+    }
+
+    /// The counters.
+    pub fn counters(&self) -> Counters {
+        self.counters
+    }
+
+    /// What the engine knows for a condition decided at `c`.
+    pub fn facts(&self, c: Cursor) -> MissionFacts {
+        MissionFacts {
+            throw_number: c.throw + 1,
+            interventions_left: self
+                .intervention_budget()
+                .saturating_sub(self.counters.interventions_used),
+            retries_used: self.counters.throw_retries,
+            thread_left_m: self
+                .plan
+                .thread_length_m
+                .map(|l| l - self.counters.thread_used_um as f64 * 1e-6),
+        }
+    }
+
+    /// The operation at `c`, if there is one.
+    pub fn op(&self, c: Cursor) -> Option<&Op> {
+        self.plan.throws.get(c.throw)?.program.get(c.step)
     }
 
     /// The plan.
@@ -97,7 +143,7 @@ impl Mission {
 
     /// Interventions requested so far.
     pub fn interventions_used(&self) -> u8 {
-        self.interventions_used
+        self.counters.interventions_used
     }
 
     /// The effective intervention budget: the plan's, bounded by the hard cap.
@@ -112,12 +158,7 @@ impl Mission {
 
     /// The step at `c`, if there is one.
     pub fn step_kind(&self, c: Cursor) -> Option<&StepKind> {
-        self.plan
-            .throws
-            .get(c.throw)?
-            .steps
-            .get(c.step)
-            .map(|s| &s.kind)
+        self.plan.throws.get(c.throw)?.step(c.step).map(|s| &s.kind)
     }
 
     /// The state that attempts the step at `c`; a cursor past the end of its throw moves on
@@ -129,13 +170,24 @@ impl Mission {
             let Some(throw) = self.plan.throws.get(c.throw) else {
                 return State::completed();
             };
-            let Some(step) = throw.steps.get(c.step) else {
+            let Some(op) = throw.program.get(c.step) else {
                 c = Cursor {
                     throw: c.throw + 1,
                     step: 0,
                     retries: 0,
                 };
                 continue;
+            };
+            let step = match op {
+                Op::Do(step) => step,
+                Op::Branch { .. } => return State::deciding(c),
+                Op::Checkpoint { .. } => return State::at_checkpoint(c),
+                // Jumps go forward (the compiler makes them so); one that did not would be
+                // skipped rather than loop.
+                Op::Jump { to } => {
+                    c.step = (*to).max(c.step + 1);
+                    continue;
+                }
             };
             return match step.kind {
                 StepKind::Insert(_) => State::inserting(c),
@@ -156,6 +208,25 @@ impl Mission {
             step: c.step + 1,
             retries: 0,
         })
+    }
+
+    /// Where a decided condition at `c` leads.
+    fn on_decided(&mut self, c: Cursor, event: &Event) -> Outcome<State> {
+        let Event::Decided(value) = event else {
+            return Super;
+        };
+        match self.op(c) {
+            Some(Op::Branch { jump_if, to, .. }) if value == jump_if => {
+                // Forward only, whatever the plan says: no cycle through a branch.
+                let to = (*to).max(c.step + 1);
+                Transition(self.step_state(Cursor {
+                    throw: c.throw,
+                    step: to,
+                    retries: 0,
+                }))
+            }
+            _ => Transition(self.next_state(c)),
+        }
     }
 
     /// The hard-capped retry budget of the step at `c`.
@@ -179,7 +250,16 @@ impl Mission {
             return Super;
         };
         let failure = match outcome {
-            StepOutcome::Succeeded { .. } => return Transition(self.next_state(c)),
+            StepOutcome::Succeeded { measured } => {
+                if self.tracks_thread {
+                    let used = measured.thread_used_m.unwrap_or(0.0).max(0.0);
+                    self.counters.thread_used_um = self
+                        .counters
+                        .thread_used_um
+                        .saturating_add((used * 1e6).round() as u64);
+                }
+                return Transition(self.next_state(c));
+            }
             StepOutcome::Failed(f) => f,
         };
         self.last_failure = Some(failure.clone());
@@ -192,6 +272,9 @@ impl Mission {
             && c.retries < cap
         {
             let retries = c.retries + 1;
+            if self.tracks_retries {
+                self.counters.throw_retries = self.counters.throw_retries.saturating_add(1);
+            }
             ctx.journal.push(Entry::Retry {
                 throw: c.throw,
                 step: c.step,
@@ -202,13 +285,13 @@ impl Mission {
             return Transition(self.step_state(Cursor { retries, ..c }));
         }
         let budget = self.intervention_budget();
-        if self.interventions_used < budget {
-            self.interventions_used += 1;
+        if self.counters.interventions_used < budget {
+            self.counters.interventions_used += 1;
             ctx.journal.push(Entry::InterventionRequested {
                 throw: c.throw,
                 step: c.step,
                 class,
-                used: self.interventions_used,
+                used: self.counters.interventions_used,
                 budget,
             });
             return Transition(State::awaiting_intervention(c, class));
@@ -365,6 +448,35 @@ impl Mission {
         self.on_step_outcome(*cursor, context, event)
     }
 
+    /// A plan's condition (a `when`, a `repeat`'s `until`): the runner observes, decides, and
+    /// the machine goes where the value leads.
+    #[state(superstate = "throw")]
+    fn deciding(&mut self, cursor: &mut Cursor, event: &Event) -> Outcome<State> {
+        self.on_decided(*cursor, event)
+    }
+
+    /// A surgeon checkpoint: the arms hold until the supervisor says go.
+    #[state(superstate = "throw", entry_action = "hold_arms")]
+    fn at_checkpoint(
+        &mut self,
+        cursor: &mut Cursor,
+        context: &mut Ctx,
+        event: &Event,
+    ) -> Outcome<State> {
+        match event {
+            Event::Supervisor(SupervisorCommand::Go) => {
+                context.journal.push(Entry::Supervisor {
+                    command: SupervisorCommand::Go,
+                    acted: true,
+                });
+                Transition(self.next_state(*cursor))
+            }
+            // Already holding, waiting on the surgeon: a pause changes nothing.
+            Event::Supervisor(c @ SupervisorCommand::Pause) => supervisor_ignored(context, *c),
+            _ => Super,
+        }
+    }
+
     /// The robot asked the surgeon for help; the arms hold until the intervention ends.
     #[state(superstate = "throw", entry_action = "hold_arms")]
     fn awaiting_intervention(
@@ -391,7 +503,8 @@ impl Mission {
                 c @ (SupervisorCommand::Pause
                 | SupervisorCommand::TakeOver
                 | SupervisorCommand::Resume
-                | SupervisorCommand::HandBack),
+                | SupervisorCommand::HandBack
+                | SupervisorCommand::Go),
             ) => supervisor_ignored(context, *c),
             _ => Super,
         }
@@ -415,9 +528,11 @@ impl Mission {
                 });
                 Transition(State::taken_over(*cursor))
             }
-            Event::Supervisor(c @ (SupervisorCommand::Resume | SupervisorCommand::HandBack)) => {
-                supervisor_ignored(context, *c)
-            }
+            Event::Supervisor(
+                c @ (SupervisorCommand::Resume
+                | SupervisorCommand::HandBack
+                | SupervisorCommand::Go),
+            ) => supervisor_ignored(context, *c),
             _ => Super,
         }
     }
@@ -523,6 +638,12 @@ impl Mission {
 
 impl Mission {
     fn after_transition(&mut self, source: &State, target: &State, context: &mut Ctx) {
+        // Retries are counted per throw.
+        if let (Some(a), Some(b)) = (state_parts(source).1, state_parts(target).1) {
+            if b.throw != a.throw {
+                self.counters.throw_retries = 0;
+            }
+        }
         context.journal.push(Entry::Transition {
             from: state_label(source),
             to: state_label(target),
@@ -541,6 +662,10 @@ pub enum Pending {
     Attempt(Cursor),
     /// Ask the supervisor to intervene for the step at the cursor; dispatch the result.
     Intervention(Cursor, FailureClass),
+    /// Observe, decide the condition at the cursor, dispatch [`Event::Decided`].
+    Decide(Cursor),
+    /// Ask the supervisor for go at the checkpoint at the cursor; dispatch the answer.
+    Checkpoint(Cursor),
     /// Wait for the supervisor's next command (paused or taken over).
     Command(Cursor),
     /// Nothing: the run is over.
@@ -559,6 +684,8 @@ pub fn pending(state: &State) -> Pending {
         | State::Correcting { cursor }
         | State::Perceiving { cursor } => Pending::Attempt(*cursor),
         State::AwaitingIntervention { cursor, class } => Pending::Intervention(*cursor, *class),
+        State::Deciding { cursor } => Pending::Decide(*cursor),
+        State::AtCheckpoint { cursor } => Pending::Checkpoint(*cursor),
         State::Paused { cursor } | State::TakenOver { cursor } => Pending::Command(*cursor),
         State::Completed {} | State::Failed { .. } | State::Aborted { .. } => Pending::Done,
     }
@@ -586,6 +713,8 @@ pub fn state_parts(state: &State) -> (&'static str, Option<Cursor>) {
         State::Correcting { cursor } => ("correcting", Some(*cursor)),
         State::Perceiving { cursor } => ("perceiving", Some(*cursor)),
         State::AwaitingIntervention { cursor, .. } => ("awaiting_intervention", Some(*cursor)),
+        State::Deciding { cursor } => ("deciding", Some(*cursor)),
+        State::AtCheckpoint { cursor } => ("at_checkpoint", Some(*cursor)),
         State::Paused { cursor } => ("paused", Some(*cursor)),
         State::TakenOver { cursor } => ("taken_over", Some(*cursor)),
         State::Completed {} => ("completed", None),

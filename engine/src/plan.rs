@@ -1,6 +1,7 @@
 //! The plan a script returns: a typed tree of mission → throws → steps, each with the script
 //! position it came from.
 
+use crate::condition::Condition;
 use serde::{Deserialize, Serialize};
 use std::fmt;
 use stitch_primitives::StepKind;
@@ -19,8 +20,14 @@ pub mod caps {
     pub const INTERVENTIONS: u8 = 2;
     /// Throws per mission: more than any wound the paper sutures (6), a sanity bound.
     pub const THROWS: usize = 20;
-    /// Steps per throw, a sanity bound.
-    pub const STEPS_PER_THROW: usize = 16;
+    /// Steps on any one path through a throw (loops counted at their bound), a sanity bound.
+    pub const STEPS_PER_THROW: usize = 32;
+    /// The most times a `repeat` may run its steps.
+    pub const REPEAT: u8 = 5;
+    /// How deeply `when` and `repeat` may nest inside each other.
+    pub const NESTING: usize = 3;
+    /// Operations in a throw's compiled program (loops unrolled), a sanity bound.
+    pub const OPS_PER_THROW: usize = 256;
 }
 
 /// A position in a plan script, 1-based.
@@ -56,19 +63,245 @@ pub struct Step {
     pub pos: SourcePos,
 }
 
+/// One element of a throw as the script wrote it: a step, or a construct around steps.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+#[serde(tag = "node", rename_all = "snake_case")]
+pub enum Node {
+    /// A primitive or perception step.
+    Step(Step),
+    /// `when(cond, [then])`, with `.otherwise([..])` if given.
+    When {
+        /// Decided when the plan reaches it.
+        cond: Condition,
+        /// Run if it holds.
+        then: Vec<Node>,
+        /// Run if it does not.
+        otherwise: Vec<Node>,
+        /// Where the script wrote it.
+        pos: SourcePos,
+    },
+    /// `repeat(#{ max: N, stop_when: cond }, [body])`: before each run of the body, stop if
+    /// the condition holds; run it at most `max` times.
+    Repeat {
+        /// The most runs of the body (≤ [`caps::REPEAT`]).
+        max: u8,
+        /// Stop once it holds (checked before each run); `None`: run exactly `max` times.
+        until: Option<Condition>,
+        /// The steps repeated.
+        body: Vec<Node>,
+        /// Where the script wrote it.
+        pos: SourcePos,
+    },
+    /// `checkpoint("label")`: the arms hold until the supervising surgeon says go.
+    Checkpoint {
+        /// What the surgeon confirms.
+        label: String,
+        /// Where the script wrote it.
+        pos: SourcePos,
+    },
+}
+
+/// Why a branch in the compiled program is there.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum BranchRole {
+    /// A `when`: past the `then` steps if the condition does not hold.
+    When,
+    /// A `repeat`'s `until`, before run `run` (1-based): out of the loop if it holds.
+    Until {
+        /// Which run of the body it comes before, 1-based.
+        run: u8,
+    },
+}
+
+/// One operation of a throw's compiled program: what the machine steps through. Loops are
+/// unrolled to their bound and every jump goes forward, so every run of a throw is finite
+/// by construction.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+#[serde(tag = "op", rename_all = "snake_case")]
+pub enum Op {
+    /// Attempt a step.
+    Do(Step),
+    /// Decide `cond`; go to `to` if its value is `jump_if`, else to the next operation.
+    Branch {
+        /// The condition.
+        cond: Condition,
+        /// The value that jumps.
+        jump_if: bool,
+        /// Where to, an index past this one (the program's length: the throw's end).
+        to: usize,
+        /// Which construct it implements.
+        role: BranchRole,
+        /// Where the construct is in the script.
+        pos: SourcePos,
+    },
+    /// Go to `to` (past the `otherwise` steps of a `when` whose `then` steps ran).
+    Jump {
+        /// Where to, an index past this one.
+        to: usize,
+    },
+    /// Hold the arms until the supervisor says go.
+    Checkpoint {
+        /// What the surgeon confirms.
+        label: String,
+        /// Where the script wrote it.
+        pos: SourcePos,
+    },
+}
+
+impl Op {
+    /// The step, if this operation attempts one.
+    pub fn step(&self) -> Option<&Step> {
+        match self {
+            Op::Do(s) => Some(s),
+            _ => None,
+        }
+    }
+
+    /// Its position in the script (none for a jump).
+    pub fn pos(&self) -> Option<SourcePos> {
+        match self {
+            Op::Do(s) => Some(s.pos),
+            Op::Branch { pos, .. } | Op::Checkpoint { pos, .. } => Some(*pos),
+            Op::Jump { .. } => None,
+        }
+    }
+
+    /// The operations that may follow this one at index `at`.
+    pub fn successors(&self, at: usize) -> Vec<usize> {
+        match self {
+            Op::Do(_) | Op::Checkpoint { .. } => vec![at + 1],
+            Op::Branch { to, .. } => vec![at + 1, *to],
+            Op::Jump { to } => vec![*to],
+        }
+    }
+}
+
 /// One suture throw: the steps at one wound point.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct Throw {
     /// The wound point (entry and exit) this throw sutures.
     pub point: WoundPoint,
-    /// The steps, in order.
-    pub steps: Vec<Step>,
+    /// What the script wrote, in order.
+    pub body: Vec<Node>,
+    /// The body compiled for the machine (see [`Op`]); indices into it are the journal's
+    /// `step`. A plan without constructs compiles to one `Do` per step, in order.
+    pub program: Vec<Op>,
     /// Where the script built the throw.
     pub pos: SourcePos,
 }
 
+impl Throw {
+    /// A throw of `body` at `point`, compiled.
+    pub fn new(point: WoundPoint, body: Vec<Node>, pos: SourcePos) -> Self {
+        let mut program = Vec::new();
+        compile(&body, &mut program);
+        Self {
+            point,
+            body,
+            program,
+            pos,
+        }
+    }
+
+    /// A throw of plain steps, in order.
+    pub fn of_steps(point: WoundPoint, steps: Vec<Step>, pos: SourcePos) -> Self {
+        Self::new(point, steps.into_iter().map(Node::Step).collect(), pos)
+    }
+
+    /// The step at program index `at`, if that operation attempts one.
+    pub fn step(&self, at: usize) -> Option<&Step> {
+        self.program.get(at).and_then(Op::step)
+    }
+
+    /// The steps of the program, with their indices.
+    pub fn steps(&self) -> impl Iterator<Item = (usize, &Step)> {
+        self.program
+            .iter()
+            .enumerate()
+            .filter_map(|(i, op)| Some((i, op.step()?)))
+    }
+
+    /// Whether the throw is done once the step at `at` succeeds with no condition in
+    /// between: no operation after it can attempt a step.
+    pub fn ends_after(&self, at: usize) -> bool {
+        self.program
+            .get(at + 1..)
+            .is_none_or(|rest| rest.iter().all(|op| matches!(op, Op::Jump { .. })))
+    }
+}
+
+/// Unroll `nodes` into `out`. Jump targets are absolute indices into `out`.
+fn compile(nodes: &[Node], out: &mut Vec<Op>) {
+    for node in nodes {
+        match node {
+            Node::Step(s) => out.push(Op::Do(s.clone())),
+            Node::Checkpoint { label, pos } => out.push(Op::Checkpoint {
+                label: label.clone(),
+                pos: *pos,
+            }),
+            Node::When {
+                cond,
+                then,
+                otherwise,
+                pos,
+            } => {
+                let branch = out.len();
+                out.push(Op::Branch {
+                    cond: cond.clone(),
+                    jump_if: false,
+                    to: 0,
+                    role: BranchRole::When,
+                    pos: *pos,
+                });
+                compile(then, out);
+                let jump = (!otherwise.is_empty()).then(|| {
+                    out.push(Op::Jump { to: 0 });
+                    out.len() - 1
+                });
+                let else_at = out.len();
+                compile(otherwise, out);
+                let end = out.len();
+                if let Some(Op::Branch { to, .. }) = out.get_mut(branch) {
+                    *to = else_at;
+                }
+                if let Some(Op::Jump { to }) = jump.and_then(|j| out.get_mut(j)) {
+                    *to = end;
+                }
+            }
+            Node::Repeat {
+                max,
+                until,
+                body,
+                pos,
+            } => {
+                let mut exits = Vec::new();
+                for run in 1..=*max {
+                    if let Some(cond) = until {
+                        exits.push(out.len());
+                        out.push(Op::Branch {
+                            cond: cond.clone(),
+                            jump_if: true,
+                            to: 0,
+                            role: BranchRole::Until { run },
+                            pos: *pos,
+                        });
+                    }
+                    compile(body, out);
+                }
+                let end = out.len();
+                for e in exits {
+                    if let Some(Op::Branch { to, .. }) = out.get_mut(e) {
+                        *to = end;
+                    }
+                }
+            }
+        }
+    }
+}
+
 /// A whole mission: what the engine executes.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct Plan {
     /// The mission's name (the policy, e.g. "STITCH").
     pub name: String,
@@ -76,6 +309,10 @@ pub struct Plan {
     pub file: String,
     /// Human interventions the robot may request (≤ [`caps::INTERVENTIONS`]).
     pub interventions: u8,
+    /// The thread loaded on the needle, m, if the plan says (what `thread_left()` counts
+    /// down from).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub thread_length_m: Option<f64>,
     /// The throws, in suturing order.
     pub throws: Vec<Throw>,
     /// Where the script built the mission.
@@ -214,30 +451,47 @@ impl NeedleHolder {
 }
 
 impl Plan {
-    /// Where the needle is before each step of each throw, if the plan's order is valid up to
-    /// there (`None` from the first step whose order is invalid).
+    /// Where the needle is before each operation of each throw's program, as the plan's
+    /// order implies (`None` where no valid order reaches it: after a step out of place, or
+    /// where branches disagree, whichever came first), and after the throw's last.
+    /// Validation makes every branch agree, so for a valid plan each index has one holder.
     pub fn holders(&self) -> Vec<Vec<Option<NeedleHolder>>> {
-        let mut holder = Some(NeedleHolder::Right);
+        let mut start = Some(NeedleHolder::Right);
         self.throws
             .iter()
             .map(|t| {
-                t.steps
-                    .iter()
-                    .map(|s| {
-                        let before = holder;
-                        holder = holder.and_then(|h| h.after(&s.kind).ok());
-                        before
-                    })
-                    .collect()
+                let n = t.program.len();
+                let mut at: Vec<Option<Option<NeedleHolder>>> = vec![None; n + 1];
+                at[0] = Some(start);
+                for (i, op) in t.program.iter().enumerate() {
+                    let Some(here) = at[i] else { continue };
+                    let after = match op {
+                        Op::Do(s) => here.and_then(|h| h.after(&s.kind).ok()),
+                        _ => here,
+                    };
+                    for j in op.successors(i) {
+                        let slot = &mut at[j.min(n)];
+                        *slot = match *slot {
+                            None => Some(after),
+                            Some(prev) if prev == after => Some(prev),
+                            Some(_) => Some(None),
+                        };
+                    }
+                }
+                let holders: Vec<Option<NeedleHolder>> =
+                    at.into_iter().map(Option::flatten).collect();
+                start = holders[n];
+                holders
             })
             .collect()
     }
 
-    /// The class a failure of step `step` of throw `throw` belongs to, from the phase: insert
-    /// and correct (which prepares the next insertion) → I; extract → E; handover → H; sweep
-    /// and cinch → T; a needle query → the phase the needle is in; a thread query → T.
+    /// The class a failure of the step at program index `step` of throw `throw` belongs to,
+    /// from the phase: insert and correct (which prepares the next insertion) → I; extract →
+    /// E; handover → H; sweep and cinch → T; a needle query → the phase the needle is in; a
+    /// thread query → T.
     pub fn phase_class(&self, throw: usize, step: usize) -> FailureClass {
-        let Some(s) = self.throws.get(throw).and_then(|t| t.steps.get(step)) else {
+        let Some(s) = self.throws.get(throw).and_then(|t| t.step(step)) else {
             return FailureClass::Insertion;
         };
         match s.kind {
@@ -259,5 +513,16 @@ impl Plan {
                 }
             }
         }
+    }
+
+    /// Whether any condition of the plan reads a quantity of `q`'s kind.
+    pub fn reads(&self, q: &crate::condition::Quantity) -> bool {
+        self.throws
+            .iter()
+            .flat_map(|t| &t.program)
+            .any(|op| match op {
+                Op::Branch { cond, .. } => cond.reads(q),
+                _ => false,
+            })
     }
 }

@@ -2,16 +2,17 @@
 //! [`Supervisor`], performs the effects it asks for, and keeps the journal and a per-throw
 //! summary.
 
+use crate::condition::Facts;
 use crate::journal::{Entry, Journal, RunOutcome};
 use crate::machine::{
     Ctx, Cursor, Effect, Event, Mission, Pending, State, pending, state_label, state_parts,
 };
-use crate::plan::Plan;
-use crate::supervisor::{InterventionRequest, InterventionResult, Supervisor};
+use crate::plan::{NeedleHolder, Op, Plan};
+use crate::supervisor::{CheckpointRequest, InterventionRequest, InterventionResult, Supervisor};
 use serde::Serialize;
 use statig::blocking::{InitializedStateMachine, IntoStateMachineExt};
 use std::sync::Arc;
-use stitch_primitives::{Primitives, StepOutcome, StepRequest};
+use stitch_primitives::{NeedleAt, ObserveRequest, Primitives, StepOutcome, StepRequest};
 use stitch_robot::Clock;
 
 /// One step attempt as the runner saw it, for timelines.
@@ -71,6 +72,8 @@ pub struct Runner<'a> {
     clock: Arc<dyn Clock>,
     throws: Vec<ThrowSummary>,
     attempts_started: usize,
+    /// Where the plan has the needle before each operation (for a condition's query).
+    holders: Vec<Vec<Option<NeedleHolder>>>,
 }
 
 impl std::fmt::Debug for Runner<'_> {
@@ -101,6 +104,7 @@ impl<'a> Runner<'a> {
             seed,
         });
         let throws = vec![ThrowSummary::default(); plan.throws.len()];
+        let holders = plan.holders();
         let machine = Mission::new(plan)
             .uninitialized_state_machine()
             .init_with_context(&mut ctx);
@@ -112,6 +116,7 @@ impl<'a> Runner<'a> {
             clock,
             throws,
             attempts_started: 0,
+            holders,
         }
     }
 
@@ -183,21 +188,113 @@ impl<'a> Runner<'a> {
                     }
                     self.attempt(c);
                 }
+                Pending::Decide(c) => self.decide(c),
+                Pending::Checkpoint(c) => {
+                    let label = match self.machine.inner().op(c) {
+                        Some(Op::Checkpoint { label, .. }) => label.clone(),
+                        _ => String::new(),
+                    };
+                    self.ctx.journal.set_now(self.clock.now());
+                    self.ctx.journal.push(Entry::Checkpoint {
+                        throw: c.throw,
+                        step: c.step,
+                        label: label.clone(),
+                    });
+                    let request = CheckpointRequest {
+                        throw: c.throw,
+                        step: c.step,
+                        label,
+                    };
+                    let event = match self.supervisor.checkpoint(&request) {
+                        Some(command) => Event::Supervisor(command),
+                        None => Event::SupervisorLost,
+                    };
+                    self.dispatch(event);
+                    self.note_throw_left(c.throw);
+                }
             }
         }
         self.finish()
     }
 
+    /// Observe, decide the condition at `c`, journal it with what it was decided on.
+    fn decide(&mut self, c: Cursor) {
+        let plan = Arc::clone(self.machine.inner().plan_arc());
+        let throw = &plan.throws[c.throw];
+        let Some(Op::Branch { cond, role, .. }) = throw.program.get(c.step) else {
+            // The machine decides only at branches: nothing to decide is a false condition.
+            self.dispatch(Event::Decided(false));
+            return;
+        };
+        let needle_at = match self.holders.get(c.throw).and_then(|t| t.get(c.step)) {
+            Some(Some(NeedleHolder::Tissue)) => NeedleAt::Tissue,
+            Some(Some(NeedleHolder::Left)) => NeedleAt::LeftJaw,
+            _ => NeedleAt::RightJaw,
+        };
+        self.ctx.journal.set_now(self.clock.now());
+        let observation = self.primitives.observe(&ObserveRequest {
+            throw: c.throw,
+            point: &throw.point,
+            needle: cond.needs_needle(),
+            needle_at,
+        });
+        let now = self.clock.now();
+        let mission = self.machine.inner().facts(c);
+        let value = observation.scripted.unwrap_or_else(|| {
+            cond.eval(&Facts {
+                observation: &observation,
+                now_s: now.as_secs_f64(),
+                mission,
+            })
+        });
+        self.ctx.journal.set_now(now);
+        self.ctx.journal.push(Entry::Condition {
+            throw: c.throw,
+            step: c.step,
+            condition: cond.to_string(),
+            role: *role,
+            value,
+            observation,
+            mission,
+        });
+        self.dispatch(Event::Decided(value));
+        self.note_throw_left(c.throw);
+    }
+
+    /// If the machine has left throw `throw` for a later one (or completed), the throw is
+    /// done: its steps ran to its end on their path.
+    fn note_throw_left(&mut self, throw: usize) {
+        let left = match self.machine.state() {
+            State::Completed {} => true,
+            s => state_parts(s).1.is_some_and(|c| c.throw > throw),
+        };
+        if left {
+            if let Some(t) = self.throws.get_mut(throw) {
+                t.completed = true;
+            }
+        }
+    }
+
     fn step_name(&self, c: Cursor) -> &'static str {
-        self.machine.inner().plan().throws[c.throw].steps[c.step]
-            .kind
-            .name()
+        self.machine.inner().step_kind(c).map_or("?", |k| k.name())
     }
 
     fn attempt(&mut self, c: Cursor) {
         let plan = Arc::clone(self.machine.inner().plan_arc());
         let throw = &plan.throws[c.throw];
-        let step = &throw.steps[c.step];
+        let Some(step) = throw.step(c.step) else {
+            // The machine attempts only steps: an operation that is not one is an engine bug
+            // surfacing; fail it safely rather than move.
+            self.dispatch(Event::StepFinished(StepOutcome::Failed(
+                stitch_primitives::Failure {
+                    kind: stitch_primitives::FailureKind::ArmFault {
+                        message: "engine: no step at this point of the plan".into(),
+                    },
+                    measured: stitch_primitives::Measurements::default(),
+                },
+            )));
+            return;
+        };
         let summary = &mut self.throws[c.throw];
         let attempt = summary.attempts.iter().filter(|a| a.step == c.step).count() as u32;
         let start = self.clock.now();
@@ -235,10 +332,8 @@ impl<'a> Runner<'a> {
             outcome: outcome.clone(),
             intervention: None,
         });
-        if matches!(outcome, StepOutcome::Succeeded { .. }) && c.step + 1 == throw.steps.len() {
-            summary.completed = true;
-        }
         self.dispatch(Event::StepFinished(outcome));
+        self.note_throw_left(c.throw);
     }
 
     fn finish(mut self) -> Report {
@@ -259,10 +354,7 @@ impl<'a> Runner<'a> {
                 class: *class,
                 throw: cursor.throw,
                 step: cursor.step,
-                primitive: mission.plan().throws[cursor.throw].steps[cursor.step]
-                    .kind
-                    .name()
-                    .into(),
+                primitive: mission.step_kind(*cursor).map_or("?", |k| k.name()).into(),
                 reason: mission.last_failure().map(|f| f.kind.clone()),
             },
             State::Aborted { cursor, by } => RunOutcome::Aborted {
@@ -349,9 +441,10 @@ pub struct UnderWay {
 impl Rebuilt {
     /// Rebuild from `records`, which must begin with the plan record. Records that name a
     /// throw the plan does not have are an error (the journal is not this plan's).
-    /// `steps_per_throw`, if known, says when a throw is done as the runner does (its last
-    /// step succeeded); without it, a throw is done when its last attempt succeeded and
-    /// another throw followed or the run completed.
+    /// A throw is done when its last attempt succeeded and the run went on to a later throw
+    /// (a step, a condition or a checkpoint there, or the run ended there) or completed; or,
+    /// where `steps_per_throw` (program lengths) is known, when that attempt was at the
+    /// program's last operation.
     pub fn from_journal(
         records: &[crate::Record],
         steps_per_throw: Option<&[usize]>,
@@ -381,6 +474,7 @@ impl Rebuilt {
             under_way: None,
         };
         let mut started: Option<f64> = None;
+        let mut reached: Option<usize> = None;
         for r in &records[1..] {
             out.duration_s = r.t_s;
             let throw = |t: usize, out: &mut Self| -> Result<usize, String> {
@@ -455,19 +549,37 @@ impl Rebuilt {
                 Entry::Plan { .. } => {
                     return Err(format!("record {}: a second plan record", r.seq));
                 }
+                Entry::Condition { throw: t, .. } | Entry::Checkpoint { throw: t, .. } => {
+                    let t = throw(*t, &mut out)?;
+                    reached = reached.max(Some(t));
+                }
                 Entry::Transition { .. } | Entry::Supervisor { .. } | Entry::Hold { .. } => {}
             }
         }
-        let last_started = out.throws.iter().rposition(|t| !t.attempts.is_empty());
+        // The last throw the run reached: by a step, a condition, a checkpoint, or where it
+        // ended.
+        let ended_at = match &out.outcome {
+            Some(RunOutcome::Failed { throw, .. } | RunOutcome::Aborted { throw, .. }) => {
+                Some(*throw)
+            }
+            _ => None,
+        };
+        let last_started = out
+            .throws
+            .iter()
+            .rposition(|t| !t.attempts.is_empty())
+            .max(reached)
+            .max(ended_at);
         let completed = matches!(out.outcome, Some(RunOutcome::Completed));
         for (i, t) in out.throws.iter_mut().enumerate() {
             let last_ok = t
                 .attempts
                 .last()
                 .filter(|a| matches!(a.outcome, StepOutcome::Succeeded { .. }));
+            let later = Some(i) < last_started || completed;
             t.completed = match (last_ok, steps_per_throw.and_then(|s| s.get(i))) {
-                (Some(a), Some(steps)) => a.step + 1 == *steps,
-                (Some(_), None) => Some(i) < last_started || completed,
+                (Some(a), Some(steps)) => a.step + 1 == *steps || later,
+                (Some(_), None) => later,
                 (None, _) => false,
             };
         }

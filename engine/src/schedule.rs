@@ -6,14 +6,18 @@
 //! {
 //!   "outcomes": ["ok", "ok", "no-progress", "ok"],
 //!   "supervisor": [{ "at": 2, "command": "pause" }, { "at": 2, "command": "resume" }],
-//!   "interventions": ["recovered"]
+//!   "interventions": ["recovered"],
+//!   "conditions": [false, true],
+//!   "checkpoints": ["go", "abort"]
 //! }
 //! ```
 //!
 //! Every key is optional. Attempts past the end of `outcomes` succeed; interventions past the
-//! end of `interventions` recover.
+//! end of `interventions` recover; the plan's conditions take the values of `conditions` in
+//! the order they are decided, `true` past its end; checkpoints are answered as `checkpoints`
+//! says, `go` past its end.
 
-use crate::supervisor::{InterventionResult, ScriptedSupervisor, TimedCommand};
+use crate::supervisor::{InterventionResult, ScriptedSupervisor, SupervisorCommand, TimedCommand};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 use stitch_primitives::{Scripted, ScriptedPrimitives};
@@ -32,6 +36,12 @@ pub struct OutcomeSchedule {
     /// How each requested intervention ends, in order.
     #[serde(default)]
     pub interventions: Vec<InterventionResult>,
+    /// The value of each condition the plan decides, in order.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub conditions: Vec<bool>,
+    /// The supervisor's answer at each checkpoint, in order.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub checkpoints: Vec<SupervisorCommand>,
 }
 
 /// An outcome schedule file that cannot be used.
@@ -79,8 +89,10 @@ impl OutcomeSchedule {
     /// The scripted primitives and supervisor that replay this schedule.
     pub fn into_parts(self, clock: SimClock) -> (ScriptedPrimitives, ScriptedSupervisor) {
         (
-            ScriptedPrimitives::from_schedule(self.outcomes, clock),
-            ScriptedSupervisor::new(self.supervisor, self.interventions),
+            ScriptedPrimitives::from_schedule(self.outcomes, clock)
+                .with_conditions(self.conditions),
+            ScriptedSupervisor::new(self.supervisor, self.interventions)
+                .with_checkpoints(self.checkpoints),
         )
     }
 }
@@ -88,7 +100,6 @@ impl OutcomeSchedule {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::supervisor::SupervisorCommand;
 
     #[test]
     fn a_schedule_parses_and_a_typo_names_its_line() {

@@ -7,7 +7,8 @@
 //! on operations, call depth, expression depth and string/array/map sizes, strict variables,
 //! and a wall-clock deadline checked through `on_progress`.
 
-use crate::plan::{Plan, PlanError, SourcePos, Step, Throw};
+use crate::condition::{Cmp, Condition, End, Quantity as Q, Target, Unit};
+use crate::plan::{Node, Plan, PlanError, SourcePos, Step, Throw, caps};
 use rhai::packages::{
     ArithmeticPackage, BasicArrayPackage, BasicIteratorPackage, BasicMapPackage, BasicMathPackage,
     BasicStringPackage, LogicPackage, Package,
@@ -64,6 +65,23 @@ pub struct Length(pub f64);
 #[derive(Clone, Copy, Debug, PartialEq, PartialOrd)]
 pub struct Angle(pub f64);
 
+/// A time in seconds, as scripts make it with `s` or `ms`.
+#[derive(Clone, Copy, Debug, PartialEq, PartialOrd)]
+pub struct Time(pub f64);
+
+/// A unit direction in the robot frame, as scripts make it with `direction(x, y, z)`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Direction([f64; 3]);
+
+/// A quantity decided at run time, as `needle_confidence()` and the like return it: compared
+/// with a bound, it makes a condition.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Observable(Q);
+
+/// A construct (`when`, `repeat`, `checkpoint`) in a step list.
+#[derive(Clone, Debug, PartialEq)]
+struct Block(Node);
+
 /// What scripts may call, with usage, for error messages and the scripting reference.
 pub const API: &[(&str, &str)] = &[
     ("mm", "mm(number) → length in millimetres"),
@@ -75,7 +93,7 @@ pub const API: &[(&str, &str)] = &[
     ("suture", "suture(wound_point, [steps]) → one suture throw"),
     (
         "mission",
-        "mission(#{ name: \"..\", interventions: 0..2, throws: [..] }) → the plan",
+        "mission(#{ name: \"..\", interventions: 0..2, throws: [..], thread_length: cm(..) }) → the plan (thread_length optional)",
     ),
     (
         "insert",
@@ -108,6 +126,83 @@ pub const API: &[(&str, &str)] = &[
     (
         "track_thread",
         "track_thread() or track_thread(#{ retries: 0..5 })",
+    ),
+    ("s", "s(number) → time in seconds"),
+    ("ms", "ms(number) → time in milliseconds"),
+    (
+        "when",
+        "when(condition, [steps]) → run the steps if the condition holds when reached; add .otherwise([steps]) for the other case",
+    ),
+    (
+        "otherwise",
+        "when(..).otherwise([steps]) → the steps run if the when's condition does not hold",
+    ),
+    (
+        "repeat",
+        "repeat(#{ max: 1..5, stop_when: condition }, [steps]) → before each run, stop if `stop_when` holds; at most `max` runs (`stop_when` optional: exactly `max`)",
+    ),
+    (
+        "checkpoint",
+        "checkpoint(\"label\") → hold the arms until the supervising surgeon says go",
+    ),
+    (
+        "needle_seen",
+        "needle_seen() → condition: a needle query now sees the needle",
+    ),
+    (
+        "needle_confidence",
+        "needle_confidence() → the latest needle estimate's confidence, compare with a number 0..1",
+    ),
+    (
+        "needle_normal_angle",
+        "needle_normal_angle(direction(x, y, z)) → angle of the latest estimate's normal to a robot-frame direction, compare with deg(..)",
+    ),
+    (
+        "needle_tip_distance",
+        "needle_tip_distance(target) → the latest estimate's tip to a target (point(..), wound_point.entry/.exit, right_jaw(), left_jaw()), compare with mm(..)",
+    ),
+    (
+        "needle_swage_distance",
+        "needle_swage_distance(target) → as needle_tip_distance, from the swage",
+    ),
+    (
+        "needle_age",
+        "needle_age() → time since the latest needle estimate's images, compare with s(..)",
+    ),
+    (
+        "thread_left",
+        "thread_left() → the mission's thread_length less what the cinches pulled, compare with cm(..)",
+    ),
+    (
+        "throw_number",
+        "throw_number() → the throw under way, 1-based, compare with a whole number",
+    ),
+    (
+        "interventions_left",
+        "interventions_left() → interventions the robot may still ask for, compare with a whole number",
+    ),
+    (
+        "retries_used",
+        "retries_used() → retries granted in this throw so far, compare with a whole number",
+    ),
+    ("all", "all([conditions]) → condition: every one holds"),
+    ("any", "any([conditions]) → condition: at least one holds"),
+    ("not", "not(condition) → condition: it does not hold"),
+    (
+        "direction",
+        "direction(x, y, z) → a robot-frame direction (+x along the wound's bite, +y down the wound, +z up)",
+    ),
+    (
+        "point",
+        "point(x, y, z) → a robot-frame point, each a length",
+    ),
+    (
+        "right_jaw",
+        "right_jaw() → the right (PSM1) jaw's tip, as a target",
+    ),
+    (
+        "left_jaw",
+        "left_jaw() → the left (PSM2) jaw's tip, as a target",
     ),
 ];
 
@@ -188,6 +283,7 @@ impl PlanLoader {
 
         register_units(&mut engine);
         register_plan_api(&mut engine, wound.clone());
+        register_conditions(&mut engine);
         Self {
             engine,
             started,
@@ -313,6 +409,14 @@ fn friendly_type(rust_name: &str) -> String {
         "bool" => "a boolean".into(),
         n if n.ends_with("Length") => "a length".into(),
         n if n.ends_with("Angle") => "an angle".into(),
+        n if n.ends_with("Time") => "a time".into(),
+        n if n.ends_with("Condition") => "a condition".into(),
+        n if n.ends_with("Observable") => {
+            "a quantity read at run time (compare it with a bound to make a condition)".into()
+        }
+        n if n.ends_with("Block") => "a when, repeat or checkpoint".into(),
+        n if n.ends_with("Target") => "a target".into(),
+        n if n.ends_with("Direction") => "a direction".into(),
         n if n.ends_with("Throw") => "a throw".into(),
         n if n.ends_with("Step") => "a step".into(),
         n if n.ends_with("WoundPoint") => "a wound point".into(),
@@ -357,6 +461,9 @@ fn register_units(engine: &mut rhai::Engine) {
     unit!("m", Length, 1.0);
     unit!("deg", Angle, std::f64::consts::PI / 180.0);
     unit!("rad", Angle, 1.0);
+    engine.register_type_with_name::<Time>("Time");
+    unit!("s", Time, 1.0);
+    unit!("ms", Time, 1e-3);
 
     macro_rules! arithmetic {
         ($ty:ident) => {
@@ -378,6 +485,9 @@ fn register_units(engine: &mut rhai::Engine) {
     }
     arithmetic!(Length);
     arithmetic!(Angle);
+    arithmetic!(Time);
+    engine.register_fn("to_string", |a: &mut Time| format!("{} s", a.0));
+    engine.register_fn("to_debug", |a: &mut Time| format!("{} s", a.0));
     engine.register_fn("to_string", |a: &mut Length| format!("{} mm", a.0 * 1e3));
     engine.register_fn("to_debug", |a: &mut Length| format!("{} mm", a.0 * 1e3));
     engine.register_fn("to_string", |a: &mut Angle| {
@@ -400,7 +510,7 @@ fn register_plan_api(engine: &mut rhai::Engine, wound: Wound) {
         format!(
             "throw at wound point {} ({} steps)",
             t.point.index + 1,
-            t.steps.len()
+            t.steps().count()
         )
     });
 
@@ -424,29 +534,23 @@ fn register_plan_api(engine: &mut rhai::Engine, wound: Wound) {
     engine.register_fn(
         "suture",
         |ctx: NativeCallContext, point: WoundPoint, steps: Array| -> RhaiResult<Throw> {
-            let steps = steps
-                .into_iter()
-                .enumerate()
-                .map(|(i, s)| {
-                    let type_name = s.type_name().to_string();
-                    s.try_cast::<Step>().ok_or_else(|| {
-                        runtime(
-                            &ctx,
-                            format!(
-                                "suture: element {} of the step list is {}; expected a primitive \
-                                 such as insert() or extract(#{{ retries: 5 }})",
-                                i + 1,
-                                friendly_type(&type_name)
-                            ),
-                        )
-                    })
-                })
-                .collect::<RhaiResult<Vec<_>>>()?;
-            Ok(Throw {
+            let body = nodes(&ctx, "suture", steps)?;
+            let ops = unrolled_len(&body);
+            if ops > caps::OPS_PER_THROW {
+                return Err(runtime(
+                    &ctx,
+                    format!(
+                        "suture: the throw unrolls to {ops} operations (loops at their bound); \
+                         the limit is {}",
+                        caps::OPS_PER_THROW
+                    ),
+                ));
+            }
+            Ok(Throw::new(
                 point,
-                steps,
-                pos: SourcePos::from_rhai(ctx.call_position()),
-            })
+                body,
+                SourcePos::from_rhai(ctx.call_position()),
+            ))
         },
     );
 
@@ -455,6 +559,7 @@ fn register_plan_api(engine: &mut rhai::Engine, wound: Wound) {
             name: String::new(),
             file: String::new(),
             interventions: 0,
+            thread_length_m: None,
             throws: Vec::new(),
             pos: SourcePos::from_rhai(ctx.call_position()),
         };
@@ -491,10 +596,17 @@ fn register_plan_api(engine: &mut rhai::Engine, wound: Wound) {
                         })?);
                     }
                 }
+                "thread_length" => {
+                    let found = describe_value(&value);
+                    let l = value.try_cast::<Length>().ok_or_else(|| {
+                        runtime(&ctx, format!("mission: `thread_length` must be a length, written cm(..), found {found}"))
+                    })?;
+                    plan.thread_length_m = Some(l.0);
+                }
                 other => {
                     return Err(runtime(
                         &ctx,
-                        format!("mission: unknown key `{other}`; expected name, interventions, throws"),
+                        format!("mission: unknown key `{other}`; expected name, interventions, throws, thread_length"),
                     ));
                 }
             }
@@ -573,4 +685,433 @@ fn describe_value(v: &Dynamic) -> String {
     } else {
         friendly_type(v.type_name())
     }
+}
+
+/// The elements of a step list: steps and constructs.
+fn nodes(ctx: &NativeCallContext, what: &str, items: Array) -> RhaiResult<Vec<Node>> {
+    items
+        .into_iter()
+        .enumerate()
+        .map(|(i, item)| {
+            let type_name = item.type_name().to_string();
+            if item.is::<Step>() {
+                return Ok(Node::Step(item.cast::<Step>()));
+            }
+            item.try_cast::<Block>().map(|b| b.0).ok_or_else(|| {
+                runtime(
+                    ctx,
+                    format!(
+                        "{what}: element {} of the step list is {}; expected a primitive such as \
+                         insert() or extract(#{{ retries: 5 }}), or when(..), repeat(..), \
+                         checkpoint(..)",
+                        i + 1,
+                        friendly_type(&type_name)
+                    ),
+                )
+            })
+        })
+        .collect()
+}
+
+/// How deeply constructs nest in `nodes` (0: none).
+fn depth(nodes: &[Node]) -> usize {
+    nodes
+        .iter()
+        .map(|n| match n {
+            Node::Step(_) | Node::Checkpoint { .. } => 0,
+            Node::When {
+                then, otherwise, ..
+            } => 1 + depth(then).max(depth(otherwise)),
+            Node::Repeat { body, .. } => 1 + depth(body),
+        })
+        .max()
+        .unwrap_or(0)
+}
+
+/// Operations `nodes` compile to (saturating), without compiling them.
+fn unrolled_len(nodes: &[Node]) -> usize {
+    nodes.iter().fold(0usize, |acc, n| {
+        acc.saturating_add(match n {
+            Node::Step(_) | Node::Checkpoint { .. } => 1,
+            Node::When {
+                then, otherwise, ..
+            } => 2usize
+                .saturating_add(unrolled_len(then))
+                .saturating_add(unrolled_len(otherwise)),
+            Node::Repeat {
+                max, until, body, ..
+            } => (unrolled_len(body).saturating_add(usize::from(until.is_some())))
+                .saturating_mul(usize::from(*max)),
+        })
+    })
+}
+
+/// A construct around `inner`, refused if it nests too deeply.
+fn block(ctx: &NativeCallContext, what: &str, node: Node, inner: usize) -> RhaiResult<Block> {
+    if inner + 1 > caps::NESTING {
+        return Err(runtime(
+            ctx,
+            format!(
+                "{what}: constructs nest {} deep here; the limit is {} (when and repeat inside \
+                 each other)",
+                inner + 1,
+                caps::NESTING
+            ),
+        ));
+    }
+    Ok(Block(node))
+}
+
+fn as_condition(ctx: &NativeCallContext, what: &str, v: Dynamic) -> RhaiResult<Condition> {
+    let type_name = v.type_name().to_string();
+    if v.is::<Condition>() {
+        return Ok(v.cast::<Condition>());
+    }
+    let hint = if v.is::<Observable>() {
+        "; compare it with a bound, e.g. needle_confidence() >= 0.8"
+    } else if v.is::<bool>() {
+        "; a script's true or false is fixed before the mission starts, a condition is \
+         decided when the plan reaches it (e.g. needle_seen())"
+    } else {
+        ""
+    };
+    Err(runtime(
+        ctx,
+        format!(
+            "{what}: expected a condition, found {}{hint}",
+            friendly_type(&type_name)
+        ),
+    ))
+}
+
+fn conditions(ctx: &NativeCallContext, what: &str, items: Array) -> RhaiResult<Vec<Condition>> {
+    items
+        .into_iter()
+        .map(|c| as_condition(ctx, what, c))
+        .collect()
+}
+
+fn compare(
+    ctx: &NativeCallContext,
+    q: Observable,
+    cmp: Cmp,
+    unit: Unit,
+    bound: f64,
+    shown: String,
+) -> RhaiResult<Condition> {
+    let want = q.0.unit();
+    let name = q.0.describe();
+    if want != unit && !(want == Unit::Number && unit == Unit::Count) {
+        return Err(runtime(
+            ctx,
+            format!(
+                "{name} {} {shown}: {name} must be compared with {}",
+                cmp.symbol(),
+                want.expected()
+            ),
+        ));
+    }
+    if matches!(cmp, Cmp::Eq | Cmp::Ne) && want != Unit::Count {
+        return Err(runtime(
+            ctx,
+            format!(
+                "{name} {} {shown}: only whole-number quantities can be compared with == or !=; \
+                 use <, <=, > or >=",
+                cmp.symbol()
+            ),
+        ));
+    }
+    if !bound.is_finite() {
+        return Err(runtime(
+            ctx,
+            format!("{name}: the bound {shown} is not finite"),
+        ));
+    }
+    Ok(Condition::Compare {
+        quantity: q.0,
+        cmp,
+        bound,
+    })
+}
+
+fn register_conditions(engine: &mut rhai::Engine) {
+    engine.register_type_with_name::<Condition>("Condition");
+    engine.register_type_with_name::<Observable>("Observable");
+    engine.register_type_with_name::<Block>("Block");
+    engine.register_type_with_name::<Target>("Target");
+    engine.register_type_with_name::<Direction>("Direction");
+    engine.register_fn("to_string", |c: &mut Condition| c.to_string());
+    engine.register_fn("to_debug", |c: &mut Condition| c.to_string());
+
+    macro_rules! observable {
+        ($name:literal, $q:expr) => {
+            engine.register_fn($name, || Observable($q));
+        };
+    }
+    observable!("needle_confidence", Q::NeedleConfidence);
+    observable!("needle_age", Q::NeedleAge);
+    observable!("thread_left", Q::ThreadLeft);
+    observable!("throw_number", Q::ThrowNumber);
+    observable!("interventions_left", Q::InterventionsLeft);
+    observable!("retries_used", Q::RetriesUsed);
+    engine.register_fn("needle_seen", || Condition::NeedleSeen);
+    engine.register_fn("needle_normal_angle", |d: Direction| {
+        Observable(Q::NeedleNormalAngle { to: d.0 })
+    });
+    engine.register_fn("needle_tip_distance", |t: Target| {
+        Observable(Q::NeedleEndDistance {
+            end: End::Tip,
+            to: t,
+        })
+    });
+    engine.register_fn("needle_swage_distance", |t: Target| {
+        Observable(Q::NeedleEndDistance {
+            end: End::Swage,
+            to: t,
+        })
+    });
+    engine.register_fn("right_jaw", || Target::RightJaw);
+    engine.register_fn("left_jaw", || Target::LeftJaw);
+    engine.register_fn(
+        "point",
+        |ctx: NativeCallContext, x: Dynamic, y: Dynamic, z: Dynamic| -> RhaiResult<Target> {
+            let mut p = [0.0; 3];
+            for (i, v) in [x, y, z].into_iter().enumerate() {
+                let found = describe_value(&v);
+                p[i] = v.try_cast::<Length>().map(|l| l.0).ok_or_else(|| {
+                    runtime(
+                        &ctx,
+                        format!(
+                            "point: coordinate {} must be a length, found {found}",
+                            i + 1
+                        ),
+                    )
+                })?;
+            }
+            Ok(Target::Point(p))
+        },
+    );
+    engine.register_get("entry", |p: &mut WoundPoint| {
+        Target::Point([p.entry.x, p.entry.y, p.entry.z])
+    });
+    engine.register_get("exit", |p: &mut WoundPoint| {
+        Target::Point([p.exit.x, p.exit.y, p.exit.z])
+    });
+    engine.register_fn(
+        "direction",
+        |ctx: NativeCallContext, x: Dynamic, y: Dynamic, z: Dynamic| -> RhaiResult<Direction> {
+            let mut d = [0.0; 3];
+            for (i, v) in [x, y, z].into_iter().enumerate() {
+                d[i] = v
+                    .as_float()
+                    .or_else(|_| v.as_int().map(|n| n as f64))
+                    .map_err(|_| {
+                        runtime(
+                            &ctx,
+                            format!(
+                                "direction: component {} must be a plain number, found {}",
+                                i + 1,
+                                describe_value(&v)
+                            ),
+                        )
+                    })?;
+            }
+            let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+            if !(n.is_finite() && n > 1e-9) {
+                return Err(runtime(
+                    &ctx,
+                    "direction: expected a non-zero, finite direction".into(),
+                ));
+            }
+            Ok(Direction([d[0] / n, d[1] / n, d[2] / n]))
+        },
+    );
+
+    macro_rules! comparisons {
+        ($rhs:ty, $unit:expr, $val:expr, $show:expr) => {
+            for (op, cmp) in [
+                ("<", Cmp::Lt),
+                ("<=", Cmp::Le),
+                (">", Cmp::Gt),
+                (">=", Cmp::Ge),
+                ("==", Cmp::Eq),
+                ("!=", Cmp::Ne),
+            ] {
+                engine.register_fn(
+                    op,
+                    move |ctx: NativeCallContext,
+                          q: Observable,
+                          b: $rhs|
+                          -> RhaiResult<Condition> {
+                        compare(&ctx, q, cmp, $unit, $val(&b), $show(&b))
+                    },
+                );
+            }
+        };
+    }
+    comparisons!(f64, Unit::Number, |b: &f64| *b, |b: &f64| b.to_string());
+    comparisons!(INT, Unit::Count, |b: &INT| *b as f64, |b: &INT| b
+        .to_string());
+    comparisons!(
+        Length,
+        Unit::Length,
+        |b: &Length| b.0,
+        |b: &Length| format!("{} mm", b.0 * 1e3)
+    );
+    comparisons!(Angle, Unit::Angle, |b: &Angle| b.0, |b: &Angle| format!(
+        "{}°",
+        b.0.to_degrees()
+    ));
+    comparisons!(Time, Unit::Time, |b: &Time| b.0, |b: &Time| format!(
+        "{} s",
+        b.0
+    ));
+
+    engine.register_fn(
+        "all",
+        |ctx: NativeCallContext, items: Array| -> RhaiResult<Condition> {
+            Ok(Condition::All {
+                of: conditions(&ctx, "all", items)?,
+            })
+        },
+    );
+    engine.register_fn(
+        "any",
+        |ctx: NativeCallContext, items: Array| -> RhaiResult<Condition> {
+            Ok(Condition::Any {
+                of: conditions(&ctx, "any", items)?,
+            })
+        },
+    );
+    engine.register_fn(
+        "not",
+        |ctx: NativeCallContext, c: Dynamic| -> RhaiResult<Condition> {
+            Ok(Condition::Not {
+                of: Box::new(as_condition(&ctx, "not", c)?),
+            })
+        },
+    );
+
+    engine.register_fn(
+        "when",
+        |ctx: NativeCallContext, cond: Dynamic, steps: Array| -> RhaiResult<Block> {
+            let cond = as_condition(&ctx, "when", cond)?;
+            let then = nodes(&ctx, "when", steps)?;
+            let inner = depth(&then);
+            let node = Node::When {
+                cond,
+                then,
+                otherwise: Vec::new(),
+                pos: SourcePos::from_rhai(ctx.call_position()),
+            };
+            block(&ctx, "when", node, inner)
+        },
+    );
+    engine.register_fn(
+        "otherwise",
+        |ctx: NativeCallContext, b: Block, steps: Array| -> RhaiResult<Block> {
+            let Node::When {
+                cond,
+                then,
+                otherwise,
+                pos,
+            } = b.0
+            else {
+                return Err(runtime(
+                    &ctx,
+                    "otherwise: follows a when(..), as in when(c, [..]).otherwise([..])".into(),
+                ));
+            };
+            if !otherwise.is_empty() {
+                return Err(runtime(&ctx, "otherwise: this when already has one".into()));
+            }
+            let otherwise = nodes(&ctx, "otherwise", steps)?;
+            let inner = depth(&then).max(depth(&otherwise));
+            let node = Node::When {
+                cond,
+                then,
+                otherwise,
+                pos,
+            };
+            block(&ctx, "when", node, inner)
+        },
+    );
+    engine.register_fn(
+        "repeat",
+        |ctx: NativeCallContext, params: Map, steps: Array| -> RhaiResult<Block> {
+            let mut max = None;
+            let mut until = None;
+            for (key, value) in params {
+                match key.as_str() {
+                    "max" => {
+                        let found = describe_value(&value);
+                        let n = value.as_int().map_err(|_| {
+                            runtime(
+                                &ctx,
+                                format!(
+                                    "repeat: `max` must be a whole number 1 to {}, found {found}",
+                                    caps::REPEAT
+                                ),
+                            )
+                        })?;
+                        if n < 1 || n > INT::from(caps::REPEAT) {
+                            return Err(runtime(
+                                &ctx,
+                                format!(
+                                    "repeat: max {n} is out of range; expected 1 to {} (the \
+                                     engine's hard cap: a plan cannot build an unbounded run)",
+                                    caps::REPEAT
+                                ),
+                            ));
+                        }
+                        max = u8::try_from(n).ok();
+                    }
+                    // `until` is a Rhai keyword (do .. until), so the key is `stop_when`.
+                    "stop_when" => {
+                        until = Some(as_condition(&ctx, "repeat: `stop_when`", value)?);
+                    }
+                    other => {
+                        return Err(runtime(
+                            &ctx,
+                            format!("repeat: unknown key `{other}`; expected max, stop_when"),
+                        ));
+                    }
+                }
+            }
+            let Some(max) = max else {
+                return Err(runtime(
+                    &ctx,
+                    format!("repeat: missing `max` (1 to {})", caps::REPEAT),
+                ));
+            };
+            let body = nodes(&ctx, "repeat", steps)?;
+            if body.is_empty() {
+                return Err(runtime(&ctx, "repeat: expected steps, found none".into()));
+            }
+            let inner = depth(&body);
+            let node = Node::Repeat {
+                max,
+                until,
+                body,
+                pos: SourcePos::from_rhai(ctx.call_position()),
+            };
+            block(&ctx, "repeat", node, inner)
+        },
+    );
+    engine.register_fn(
+        "checkpoint",
+        |ctx: NativeCallContext, label: rhai::ImmutableString| -> RhaiResult<Block> {
+            let label = label.trim().to_string();
+            if label.is_empty() {
+                return Err(runtime(
+                    &ctx,
+                    "checkpoint: the label must say what the surgeon confirms".into(),
+                ));
+            }
+            Ok(Block(Node::Checkpoint {
+                label,
+                pos: SourcePos::from_rhai(ctx.call_position()),
+            }))
+        },
+    );
 }

@@ -24,17 +24,20 @@ pub enum SupervisorCommand {
     TakeOver,
     /// The surgeon hands control back; the engine re-runs the step that was next.
     HandBack,
+    /// At a plan's checkpoint: the surgeon confirms, the plan goes on (ignored elsewhere).
+    Go,
 }
 
 impl SupervisorCommand {
     /// Every command.
-    pub const ALL: [SupervisorCommand; 6] = [
+    pub const ALL: [SupervisorCommand; 7] = [
         SupervisorCommand::Pause,
         SupervisorCommand::Resume,
         SupervisorCommand::Abort,
         SupervisorCommand::EStop,
         SupervisorCommand::TakeOver,
         SupervisorCommand::HandBack,
+        SupervisorCommand::Go,
     ];
 
     /// The command as written in schedules.
@@ -46,6 +49,7 @@ impl SupervisorCommand {
             SupervisorCommand::EStop => "e-stop",
             SupervisorCommand::TakeOver => "take-over",
             SupervisorCommand::HandBack => "hand-back",
+            SupervisorCommand::Go => "go",
         }
     }
 }
@@ -110,6 +114,22 @@ pub trait Supervisor {
 
     /// Perform the intervention the robot asked for and say how it ended.
     fn intervene(&mut self, request: &InterventionRequest) -> InterventionResult;
+
+    /// The plan reached a checkpoint; the arms hold. Wait for the surgeon's answer: `go`,
+    /// or `abort`, `e-stop`, `take-over`; `None` means the supervisor is gone and the run
+    /// must abort.
+    fn checkpoint(&mut self, request: &CheckpointRequest) -> Option<SupervisorCommand>;
+}
+
+/// What the robot tells the surgeon at a checkpoint.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct CheckpointRequest {
+    /// Throw index, 0-based.
+    pub throw: usize,
+    /// Program index, 0-based.
+    pub step: usize,
+    /// What the surgeon confirms, as the plan says.
+    pub label: String,
 }
 
 /// A command scheduled before a given step attempt.
@@ -126,13 +146,17 @@ pub struct TimedCommand {
 /// Commands are delivered in order, each at the first poll once `at` step attempts have
 /// started. While paused or taken over, the next scheduled command is delivered whatever its
 /// `at`; once the schedule is empty the supervisor is silent and the run aborts, arms held.
-/// Interventions end as the `interventions` list says, `Recovered` once it is exhausted.
+/// Interventions end as the `interventions` list says, `Recovered` once it is exhausted;
+/// checkpoints are answered as the `checkpoints` list says, `go` once it is exhausted.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct ScriptedSupervisor {
     commands: VecDeque<TimedCommand>,
     interventions: VecDeque<InterventionResult>,
+    checkpoints: VecDeque<SupervisorCommand>,
     /// Every intervention request received, in order.
     pub requests: Vec<InterventionRequest>,
+    /// Every checkpoint reached, in order.
+    pub checkpoints_reached: Vec<CheckpointRequest>,
 }
 
 impl ScriptedSupervisor {
@@ -144,8 +168,19 @@ impl ScriptedSupervisor {
         Self {
             commands: commands.into_iter().collect(),
             interventions: interventions.into_iter().collect(),
+            checkpoints: VecDeque::new(),
             requests: Vec::new(),
+            checkpoints_reached: Vec::new(),
         }
+    }
+
+    /// Checkpoints are answered with these, in order (`go` once they run out).
+    pub fn with_checkpoints(
+        mut self,
+        answers: impl IntoIterator<Item = SupervisorCommand>,
+    ) -> Self {
+        self.checkpoints = answers.into_iter().collect();
+        self
     }
 }
 
@@ -167,5 +202,14 @@ impl Supervisor for ScriptedSupervisor {
         self.interventions
             .pop_front()
             .unwrap_or(InterventionResult::Recovered)
+    }
+
+    fn checkpoint(&mut self, request: &CheckpointRequest) -> Option<SupervisorCommand> {
+        self.checkpoints_reached.push(request.clone());
+        Some(
+            self.checkpoints
+                .pop_front()
+                .unwrap_or(SupervisorCommand::Go),
+        )
     }
 }

@@ -1,7 +1,8 @@
 //! Validation before anything moves: ranges, order within and across throws, budgets within
 //! the engine's hard caps. Every error names the script position and what was expected.
 
-use crate::plan::{NeedleHolder, Plan, PlanError, PlanErrors, SourcePos, caps};
+use crate::condition::{Condition, Quantity as Observed};
+use crate::plan::{NeedleHolder, Node, Plan, PlanError, PlanErrors, SourcePos, caps};
 use stitch_primitives::{Quantity, StepKind, Value};
 
 /// Check a plan; `Ok` only if nothing is wrong. All problems are reported, in script order.
@@ -67,92 +68,41 @@ pub fn validate(plan: &Plan) -> Result<(), PlanErrors> {
                 );
             }
         }
-        if throw.steps.is_empty() {
+        if throw.body.is_empty() {
             err(throw.pos, format!("throw {n}: expected steps, found none"));
         }
-        if throw.steps.len() > caps::STEPS_PER_THROW {
+        let mut walk = Walk {
+            plan,
+            n,
+            first_insert_seen: false,
+            err: &mut err,
+        };
+        let (after, counts) = walk.nodes(&throw.body, holder);
+        holder = after;
+        if counts.steps > caps::STEPS_PER_THROW {
             err(
                 throw.pos,
                 format!(
-                    "throw {n}: {} steps exceeds the limit of {}",
-                    throw.steps.len(),
+                    "throw {n}: {} steps on its longest path (loops at their bound) exceeds the \
+                     limit of {}",
+                    counts.steps,
                     caps::STEPS_PER_THROW
                 ),
             );
         }
-
-        let mut inserts = 0;
-        let mut extracts = 0;
-        for (si, step) in throw.steps.iter().enumerate() {
-            let name = step.kind.name();
-            check_ranges(&step.kind, n, |m| err(step.pos, m));
-            check_retry_cap(&step.kind, n, |m| err(step.pos, m));
-            if let StepKind::Cinch(c) = step.kind {
-                let beta = c.beta_m(n);
-                if beta <= 0.0 {
-                    err(
-                        step.pos,
-                        format!(
-                            "throw {n}: cinch pulls β = l_des − (i − 1)·l_each = {:.1} cm − {}·{:.1} \
-                             cm = {:.1} cm for suture {n}; expected more than 0",
-                            c.l_des_m * 100.0,
-                            n - 1,
-                            c.l_each_m * 100.0,
-                            beta * 100.0
-                        ),
-                    );
-                }
+        for (name, (lo, hi)) in [("insert", counts.inserts), ("extract", counts.extracts)] {
+            if (lo, hi) == (1, 1) {
+                continue;
             }
-            match step.kind {
-                StepKind::Insert(_) => inserts += 1,
-                StepKind::Extract(_) => extracts += 1,
-                _ => {}
-            }
-            match holder.after(&step.kind) {
-                Ok(h) => holder = h,
-                Err(needs) => {
-                    let hint = match (&step.kind, holder) {
-                        (StepKind::Insert(_), NeedleHolder::Left) if ti > 0 && inserts == 1 => {
-                            format!("; add handover() to the end of throw {}", n - 1)
-                        }
-                        (StepKind::Handover(_), NeedleHolder::Tissue) => {
-                            "; extract() must come before handover()".into()
-                        }
-                        (StepKind::Extract(_), NeedleHolder::Right) => {
-                            "; insert() must come before extract()".into()
-                        }
-                        _ => String::new(),
-                    };
-                    err(
-                        step.pos,
-                        format!(
-                            "throw {n}: {name} needs {needs}, but here the needle is {}{hint}",
-                            holder.describe()
-                        ),
-                    );
-                    // Go on so that later problems are still found but this one is not
-                    // reported again: either the step is out of place (the needle stays
-                    // where it was) or a step before it is missing (the needle is where
-                    // this step leaves it). Keep whichever lets the next step follow.
-                    let next = throw.steps.get(si + 1).map(|s| &s.kind);
-                    let fits = |h: NeedleHolder| next.is_none_or(|k| h.after(k).is_ok());
-                    if !fits(holder) {
-                        holder = assumed_after(&step.kind, holder);
-                    }
-                }
-            }
-        }
-        if inserts != 1 {
-            err(
-                throw.pos,
-                format!("throw {n}: expected exactly one insert(), found {inserts}"),
-            );
-        }
-        if extracts != 1 {
-            err(
-                throw.pos,
-                format!("throw {n}: expected exactly one extract(), found {extracts}"),
-            );
+            let message = if lo == hi {
+                format!("throw {n}: expected exactly one {name}(), found {lo}")
+            } else {
+                format!(
+                    "throw {n}: {name}() must run exactly once on every path; here it runs {lo} \
+                     to {hi} times (a when or repeat around it?)"
+                )
+            };
+            err(throw.pos, message.replace("found 0", "found none"));
         }
     }
 
@@ -160,6 +110,223 @@ pub fn validate(plan: &Plan) -> Result<(), PlanErrors> {
         Ok(())
     } else {
         Err(PlanErrors(errors))
+    }
+}
+
+/// What runs on the paths through some nodes.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+struct Counts {
+    /// Fewest and most inserts on a path.
+    inserts: (usize, usize),
+    /// Fewest and most extracts on a path.
+    extracts: (usize, usize),
+    /// Most steps on a path.
+    steps: usize,
+}
+
+impl Counts {
+    fn then(self, o: Counts) -> Counts {
+        let add = |a: (usize, usize), b: (usize, usize)| (a.0 + b.0, a.1 + b.1);
+        Counts {
+            inserts: add(self.inserts, o.inserts),
+            extracts: add(self.extracts, o.extracts),
+            steps: self.steps + o.steps,
+        }
+    }
+
+    fn or(self, o: Counts) -> Counts {
+        let join = |a: (usize, usize), b: (usize, usize)| (a.0.min(b.0), a.1.max(b.1));
+        Counts {
+            inserts: join(self.inserts, o.inserts),
+            extracts: join(self.extracts, o.extracts),
+            steps: self.steps.max(o.steps),
+        }
+    }
+
+    fn times(self, lo: usize, hi: usize) -> Counts {
+        Counts {
+            inserts: (self.inserts.0 * lo, self.inserts.1 * hi),
+            extracts: (self.extracts.0 * lo, self.extracts.1 * hi),
+            steps: self.steps * hi,
+        }
+    }
+}
+
+/// Validation of one throw's body: follows the needle through every branch.
+struct Walk<'a, F: FnMut(SourcePos, String)> {
+    plan: &'a Plan,
+    /// Throw number, 1-based.
+    n: usize,
+    first_insert_seen: bool,
+    err: &'a mut F,
+}
+
+impl<F: FnMut(SourcePos, String)> Walk<'_, F> {
+    /// Check `nodes` from `holder`; where the needle is after them, and what runs.
+    fn nodes(&mut self, nodes: &[Node], mut holder: NeedleHolder) -> (NeedleHolder, Counts) {
+        let n = self.n;
+        let mut counts = Counts::default();
+        for (i, node) in nodes.iter().enumerate() {
+            match node {
+                Node::Step(step) => {
+                    let next = match nodes.get(i + 1) {
+                        Some(Node::Step(s)) => Some(&s.kind),
+                        _ => None,
+                    };
+                    holder = self.step(step, holder, next);
+                    let once = |b: bool| (usize::from(b), usize::from(b));
+                    counts = counts.then(Counts {
+                        inserts: once(matches!(step.kind, StepKind::Insert(_))),
+                        extracts: once(matches!(step.kind, StepKind::Extract(_))),
+                        steps: 1,
+                    });
+                }
+                Node::Checkpoint { .. } => {}
+                Node::When {
+                    cond,
+                    then,
+                    otherwise,
+                    pos,
+                } => {
+                    self.condition(cond, *pos);
+                    if then.is_empty() && otherwise.is_empty() {
+                        (self.err)(*pos, format!("throw {n}: when: expected steps, found none"));
+                    }
+                    let (h1, c1) = self.nodes(then, holder);
+                    let (h2, c2) = self.nodes(otherwise, holder);
+                    if h1 != h2 {
+                        (self.err)(
+                            *pos,
+                            format!(
+                                "throw {n}: when: the needle ends {} if `{cond}` holds and {} \
+                                 if not; both branches must leave it in the same place for what \
+                                 follows",
+                                h1.describe(),
+                                h2.describe()
+                            ),
+                        );
+                    }
+                    holder = h1;
+                    counts = counts.then(c1.or(c2));
+                }
+                Node::Repeat {
+                    max,
+                    until,
+                    body,
+                    pos,
+                } => {
+                    if let Some(c) = until {
+                        self.condition(c, *pos);
+                    }
+                    if *max == 0 || *max > caps::REPEAT {
+                        (self.err)(
+                            *pos,
+                            format!(
+                                "throw {n}: repeat: max {max} is out of range; expected 1 to {}",
+                                caps::REPEAT
+                            ),
+                        );
+                    }
+                    let (after, c) = self.nodes(body, holder);
+                    if after != holder {
+                        (self.err)(
+                            *pos,
+                            format!(
+                                "throw {n}: repeat: its steps take the needle from {} to {}; \
+                                 repeated steps must leave it where they found it",
+                                holder.describe(),
+                                after.describe()
+                            ),
+                        );
+                    }
+                    let max = usize::from(*max);
+                    let lo = if until.is_some() { 0 } else { max };
+                    counts = counts.then(c.times(lo, max));
+                }
+            }
+        }
+        (holder, counts)
+    }
+
+    fn condition(&mut self, cond: &Condition, pos: SourcePos) {
+        if cond.reads(&Observed::ThreadLeft) && self.plan.thread_length_m.is_none() {
+            (self.err)(
+                pos,
+                format!(
+                    "throw {}: `{cond}` reads thread_left(), which needs the mission's \
+                     thread length: mission(#{{ .., thread_length: cm(..) }})",
+                    self.n
+                ),
+            );
+        }
+    }
+
+    /// Check one step from `holder`; where the needle is after it.
+    fn step(
+        &mut self,
+        step: &crate::plan::Step,
+        holder: NeedleHolder,
+        next: Option<&StepKind>,
+    ) -> NeedleHolder {
+        let n = self.n;
+        let name = step.kind.name();
+        let err = &mut *self.err;
+        check_ranges(&step.kind, n, |m| err(step.pos, m));
+        check_retry_cap(&step.kind, n, |m| err(step.pos, m));
+        if let StepKind::Cinch(c) = step.kind {
+            let beta = c.beta_m(n);
+            if beta <= 0.0 {
+                err(
+                    step.pos,
+                    format!(
+                        "throw {n}: cinch pulls β = l_des − (i − 1)·l_each = {:.1} cm − {}·{:.1} \
+                         cm = {:.1} cm for suture {n}; expected more than 0",
+                        c.l_des_m * 100.0,
+                        n - 1,
+                        c.l_each_m * 100.0,
+                        beta * 100.0
+                    ),
+                );
+            }
+        }
+        let first_insert = matches!(step.kind, StepKind::Insert(_)) && !self.first_insert_seen;
+        if matches!(step.kind, StepKind::Insert(_)) {
+            self.first_insert_seen = true;
+        }
+        match holder.after(&step.kind) {
+            Ok(h) => h,
+            Err(needs) => {
+                let hint = match (&step.kind, holder) {
+                    (StepKind::Insert(_), NeedleHolder::Left) if n > 1 && first_insert => {
+                        format!("; add handover() to the end of throw {}", n - 1)
+                    }
+                    (StepKind::Handover(_), NeedleHolder::Tissue) => {
+                        "; extract() must come before handover()".into()
+                    }
+                    (StepKind::Extract(_), NeedleHolder::Right) => {
+                        "; insert() must come before extract()".into()
+                    }
+                    _ => String::new(),
+                };
+                err(
+                    step.pos,
+                    format!(
+                        "throw {n}: {name} needs {needs}, but here the needle is {}{hint}",
+                        holder.describe()
+                    ),
+                );
+                // Go on so that later problems are still found but this one is not reported
+                // again: either the step is out of place (the needle stays where it was) or
+                // a step before it is missing (the needle is where this step leaves it).
+                // Keep whichever lets the next step follow.
+                let fits = |h: NeedleHolder| next.is_none_or(|k| h.after(k).is_ok());
+                if fits(holder) {
+                    holder
+                } else {
+                    assumed_after(&step.kind, holder)
+                }
+            }
+        }
     }
 }
 
@@ -262,17 +429,20 @@ mod tests {
             name: "test".into(),
             file: "t.rhai".into(),
             interventions: 0,
+            thread_length_m: None,
             throws: throws
                 .into_iter()
                 .enumerate()
-                .map(|(i, steps)| Throw {
-                    point: WoundPoint {
-                        index: i,
-                        entry: Point::new(-0.005, 0.008 * i as f64, 0.0),
-                        exit: Point::new(0.005, 0.008 * i as f64, 0.0),
-                    },
-                    steps,
-                    pos: SourcePos { line: 1, col: 1 },
+                .map(|(i, steps)| {
+                    Throw::of_steps(
+                        WoundPoint {
+                            index: i,
+                            entry: Point::new(-0.005, 0.008 * i as f64, 0.0),
+                            exit: Point::new(0.005, 0.008 * i as f64, 0.0),
+                        },
+                        steps,
+                        SourcePos { line: 1, col: 1 },
+                    )
                 })
                 .collect(),
             pos: SourcePos { line: 1, col: 1 },

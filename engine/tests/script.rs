@@ -34,12 +34,17 @@ fn the_shipped_policies_load_and_validate() {
         ("stitch_human.rhai", "STITCH + Human", 6, 6, 2),
         ("sensing_only.rhai", "Sensing Only", 6, 3, 0),
         ("thread_handling.rhai", "Thread Handling", 6, 5, 0),
+        // Unrolled: 3 needle queries, the 6 steps, 2 more corrections.
+        ("stitch_reactive.rhai", "STITCH Reactive", 6, 11, 0),
     ] {
         let loaded = load_plan(&loader(), &scripts().join(file)).unwrap_or_else(|e| panic!("{e}"));
         let plan = loaded.plan;
         assert_eq!(plan.name, name);
         assert_eq!(plan.throws.len(), throws, "{file}");
-        assert!(plan.throws.iter().all(|t| t.steps.len() == steps), "{file}");
+        assert!(
+            plan.throws.iter().all(|t| t.steps().count() == steps),
+            "{file}"
+        );
         assert_eq!(plan.interventions, interventions, "{file}");
         // One throw per wound point, in order.
         for (i, t) in plan.throws.iter().enumerate() {
@@ -54,7 +59,7 @@ fn units_and_parameters_reach_the_plan_in_si() {
                extract(#{ retries: 2, offset: cm(1) + mm(5) }), handover()]);\n\
                mission(#{ name: \"x\", throws: [t] })";
     let plan = load_plan_str(&loader(), "p.rhai", src).expect("valid").plan;
-    let steps = &plan.throws[0].steps;
+    let steps: Vec<_> = plan.throws[0].steps().map(|(_, s)| s).collect();
     match (&steps[0].kind, &steps[1].kind) {
         (StepKind::Insert(i), StepKind::Extract(e)) => {
             assert!((i.rotation_rad - 30f64.to_radians()).abs() < 1e-12);
@@ -229,4 +234,82 @@ fn the_sandbox_offers_no_eval_and_no_sleep() {
 fn oversized_arrays_are_stopped() {
     let e = error_of("let a = [];\nfor i in 0..5000 { a.push(i); }");
     assert!(e.contains("stopped by the sandbox"), "{e}");
+}
+
+/// The scripting reference in docs/scripting.md is what the sandbox registers.
+#[test]
+fn the_scripting_reference_in_the_docs_is_generated_from_the_registered_api() {
+    use stitch_engine::{REFERENCE_BEGIN, REFERENCE_END, reference_markdown};
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/scripting.md");
+    let doc = std::fs::read_to_string(&path).expect("docs/scripting.md");
+    let (Some(a), Some(b)) = (doc.find(REFERENCE_BEGIN), doc.find(REFERENCE_END)) else {
+        panic!("docs/scripting.md lacks the {REFERENCE_BEGIN} / {REFERENCE_END} lines");
+    };
+    let fresh = format!("{REFERENCE_BEGIN}\n{}{REFERENCE_END}", reference_markdown());
+    let current = &doc[a..b + REFERENCE_END.len()];
+    if current != fresh {
+        if std::env::var_os("STITCH_UPDATE_DOCS").is_some() {
+            let updated = doc.replacen(current, &fresh, 1);
+            std::fs::write(&path, updated).expect("write docs/scripting.md");
+        } else {
+            panic!(
+                "docs/scripting.md's reference is stale; rerun with STITCH_UPDATE_DOCS=1 to \
+                 regenerate it"
+            );
+        }
+    }
+    // Every registered function is in it.
+    for (name, _) in stitch_engine::API {
+        assert!(fresh.contains(&format!("| `{name}` |")), "{name}");
+    }
+}
+
+#[test]
+fn conditions_and_constructs_are_checked_where_the_script_builds_them() {
+    let steps = "insert(), sweep(), extract(), cinch(), handover()";
+    let throw = |pre: &str| {
+        format!(
+            "let t = suture(wound()[0], [{pre}, {steps}]);\nmission(#{{ name: \"x\", throws: [t] }})"
+        )
+    };
+    let e = error_of(&throw("repeat(#{ max: 9 }, [estimate_needle()])"));
+    assert!(
+        e.contains("repeat: max 9 is out of range; expected 1 to 5 (the engine's hard cap"),
+        "{e}"
+    );
+    let e = error_of(&throw("when(true, [estimate_needle()])"));
+    assert!(
+        e.contains(
+            "when: expected a condition, found a boolean; a script's true or false is fixed"
+        ),
+        "{e}"
+    );
+    let e = error_of(&throw("when(needle_confidence(), [estimate_needle()])"));
+    assert!(e.contains("compare it with a bound"), "{e}");
+    let e = error_of(&throw(
+        "when(needle_confidence() < mm(3), [estimate_needle()])",
+    ));
+    assert!(
+        e.contains(
+            "needle_confidence() < 3 mm: needle_confidence() must be compared with a number"
+        ),
+        "{e}"
+    );
+    let e = error_of(&throw("when(needle_age() == s(2), [estimate_needle()])"));
+    assert!(
+        e.contains("only whole-number quantities can be compared with =="),
+        "{e}"
+    );
+    let e = error_of(&throw("when(thread_left() < cm(5), [estimate_needle()])"));
+    assert!(
+        e.contains("reads thread_left(), which needs the mission's thread length"),
+        "{e}"
+    );
+    let nested = "when(needle_seen(), [when(needle_seen(), [when(needle_seen(), [when(needle_seen(), [estimate_needle()])])])])";
+    let e = error_of(&throw(nested));
+    assert!(
+        e.contains("constructs nest 4 deep here; the limit is 3"),
+        "{e}"
+    );
+    assert!(e.starts_with("plan.rhai:1:"), "{e}");
 }

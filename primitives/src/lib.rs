@@ -21,7 +21,8 @@ pub use robot::{
 };
 pub use scripted::{Call, OutcomeModel, SCRIPTED_TOKENS, Scripted, ScriptedPrimitives};
 
-use stitch_robot::WoundPoint;
+use serde::{Deserialize, Serialize};
+use stitch_robot::{Point, Vector, WoundPoint};
 
 /// What the engine asks a primitive to do: one attempt at one step of one throw.
 #[derive(Clone, Copy, Debug)]
@@ -38,12 +39,84 @@ pub struct StepRequest<'a> {
     pub attempt: u32,
 }
 
+/// Where the plan has the needle when a condition asks about it (which jaw to look near).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum NeedleAt {
+    /// Held by the right (inserting) jaw, near the swage.
+    RightJaw,
+    /// In the tissue through the throw's holes, held by neither jaw.
+    Tissue,
+    /// Held by the left (extracting) jaw.
+    LeftJaw,
+}
+
+/// What the engine asks for when a plan's condition is decided.
+#[derive(Clone, Copy, Debug)]
+pub struct ObserveRequest<'a> {
+    /// Throw index, 0-based.
+    pub throw: usize,
+    /// The throw's wound point.
+    pub point: &'a WoundPoint,
+    /// Whether to run a needle query (one estimator cycle) now.
+    pub needle: bool,
+    /// Where the plan has the needle.
+    pub needle_at: NeedleAt,
+}
+
+/// A needle estimate as a condition reads it, robot frame, m.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct NeedleSeen {
+    /// The arc's centre.
+    pub center: Point,
+    /// The unit normal of the needle's plane.
+    pub normal: Vector,
+    /// The tip.
+    pub tip: Point,
+    /// The swage.
+    pub swage: Point,
+    /// How sure the estimator was, 0 to 1.
+    pub confidence: f64,
+    /// When its images were taken, on the run's clock, s.
+    pub stamp_s: f64,
+}
+
+/// What the robot could tell when a condition was decided. Only what its sensors give: a
+/// needle estimate and the arms' measured poses.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Observation {
+    /// The latest needle estimate: this query's if it saw the needle, else an earlier one
+    /// (its stamp says how old), else none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub needle: Option<NeedleSeen>,
+    /// Whether this query saw the needle.
+    #[serde(default)]
+    pub needle_now: bool,
+    /// Why this query saw no needle (a typed perception failure), if it ran and saw none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub needle_failure: Option<String>,
+    /// The right jaw's tip, as PSM1 measures it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub right_jaw: Option<Point>,
+    /// The left jaw's tip, as PSM2 measures it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub left_jaw: Option<Point>,
+    /// A value a schedule dictates instead of an observation (scripted primitives and
+    /// replays of model-checker paths only; a robot never sets it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub scripted: Option<bool>,
+}
+
 /// The engine's only way to move the robot. Implementations: the real primitives over the
 /// `robot/` traits (mock or real dVRK), and [`ScriptedPrimitives`] for tests.
 pub trait Primitives {
     /// Run one attempt of one step and report its outcome. Robot errors during the step are
     /// reported as a [`FailureKind::ArmFault`] failure, after the arms were made to hold.
     fn run(&mut self, req: &StepRequest<'_>) -> StepOutcome;
+
+    /// Observe for a plan's condition: a needle query if asked (one estimator cycle, no
+    /// motion) and the arms' measured poses. Never fails: what could not be seen is absent.
+    fn observe(&mut self, req: &ObserveRequest<'_>) -> Observation;
 
     /// Stop every motion and hold both arms where they are. Called on pause, take-over,
     /// abort, e-stop and at the end of a failed run.

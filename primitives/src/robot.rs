@@ -10,7 +10,8 @@
 
 use crate::{
     CinchParams, CorrectParams, ExtractParams, Failure, FailureKind, HandoverParams, InsertParams,
-    Measurements, PrimitiveError, Primitives, StepKind, StepOutcome, StepRequest, SweepParams,
+    Measurements, NeedleAt, NeedleSeen, Observation, ObserveRequest, PrimitiveError, Primitives,
+    StepKind, StepOutcome, StepRequest, SweepParams,
 };
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
@@ -125,6 +126,10 @@ pub struct RobotPrimitives {
     corrected_grasp: Option<Pose>,
     /// The wound point the needle last went into (where extraction finds it).
     last_point: Option<WoundPoint>,
+    /// The latest needle estimate any step or condition obtained (a condition's age reads it).
+    last_estimate: Option<NeedleEstimate>,
+    /// The end the left jaw grasped at the last extraction.
+    left_end: NeedleEnd,
 }
 
 /// A step that cannot go on, and why.
@@ -268,6 +273,8 @@ impl RobotPrimitives {
             rig,
             corrected_grasp: None,
             last_point: None,
+            last_estimate: None,
+            left_end: NeedleEnd::Tip,
         }
     }
 
@@ -311,7 +318,10 @@ impl RobotPrimitives {
     /// needle out of sight, and stops the step.
     fn sample(&mut self, hint: Option<&NeedleHint>) -> Step<Option<NeedleEstimate>> {
         match self.rig.estimator.estimate_needle_with(hint) {
-            Ok(e) => Ok(Some(e)),
+            Ok(e) => {
+                self.last_estimate = Some(e);
+                Ok(Some(e))
+            }
             Err(PerceptionError::Camera { message }) => Err(failed(FailureKind::ArmFault {
                 message: format!("perception: {message}"),
             })),
@@ -438,6 +448,11 @@ impl RobotPrimitives {
             (tip, true)
         } else {
             (swage, false)
+        };
+        self.left_end = if is_tip {
+            NeedleEnd::Tip
+        } else {
+            NeedleEnd::Swage
         };
         let [off, grasp] = regrasp_waypoints(&regrasp, &from, p.offset_m, p.approach_m);
         finish(self.rig.left_jaw.open())?;
@@ -691,6 +706,58 @@ impl Primitives for RobotPrimitives {
             Ok(measured) => StepOutcome::Succeeded { measured },
             Err(failure) => StepOutcome::Failed(failure),
         }
+    }
+
+    fn observe(&mut self, req: &ObserveRequest<'_>) -> Observation {
+        let mut obs = Observation {
+            right_jaw: self
+                .rig
+                .right
+                .measured_cp()
+                .ok()
+                .map(|p| Point::from(p.translation.vector)),
+            left_jaw: self
+                .rig
+                .left
+                .measured_cp()
+                .ok()
+                .map(|p| Point::from(p.translation.vector)),
+            ..Observation::default()
+        };
+        if req.needle {
+            let hint = match req.needle_at {
+                NeedleAt::RightJaw => self.held_hint(Hand::Right, NeedleEnd::Swage),
+                NeedleAt::LeftJaw => self.held_hint(Hand::Left, self.left_end),
+                NeedleAt::Tissue => {
+                    let wp = self.last_point.as_ref().unwrap_or(req.point);
+                    Some(NeedleHint::InTissue(TissueHint {
+                        entry: wp.entry,
+                        exit: wp.exit,
+                    }))
+                }
+            };
+            // One estimator cycle, as a step's sample takes it; the latest estimate is kept
+            // whether or not this one sees the needle.
+            match self.rig.estimator.estimate_needle_with(hint.as_ref()) {
+                Ok(e) => {
+                    obs.needle_now = true;
+                    self.last_estimate = Some(e);
+                }
+                Err(e) => obs.needle_failure = Some(e.to_string()),
+            }
+        }
+        obs.needle = self.last_estimate.as_ref().map(|e| {
+            let (center, normal, tip, swage) = e.features(&self.rig.needle);
+            NeedleSeen {
+                center,
+                normal,
+                tip,
+                swage,
+                confidence: e.confidence,
+                stamp_s: e.stamp.as_secs_f64(),
+            }
+        });
+        obs
     }
 
     fn hold_all(&mut self) -> Result<(), PrimitiveError> {

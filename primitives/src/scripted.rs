@@ -8,7 +8,8 @@
 //! reports 5 mm of endpoint travel, below the 2 cm threshold).
 
 use crate::{
-    FailureKind, Measurements, PrimitiveError, Primitives, StepKind, StepOutcome, StepRequest,
+    FailureKind, Measurements, Observation, ObserveRequest, PrimitiveError, Primitives, StepKind,
+    StepOutcome, StepRequest,
 };
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -200,12 +201,13 @@ enum Source {
     Seeded(Box<Seeded>),
 }
 
-/// The seeded source's model and its two independent streams.
+/// The seeded source's model and its independent streams.
 #[derive(Debug)]
 struct Seeded {
     model: OutcomeModel,
     outcomes: ChaCha8Rng,
     durations: ChaCha8Rng,
+    conditions: ChaCha8Rng,
 }
 
 /// One call the engine made, as recorded.
@@ -232,6 +234,10 @@ pub struct ScriptedPrimitives {
     pub calls: Vec<Call>,
     /// For each `hold_all`, how many `run` calls had been made before it.
     pub holds: Vec<usize>,
+    /// Values of the plan's conditions, in order (a schedule's; `true` once exhausted).
+    conditions: VecDeque<bool>,
+    /// Every condition value given, in order.
+    pub decided: Vec<bool>,
 }
 
 impl ScriptedPrimitives {
@@ -243,7 +249,16 @@ impl ScriptedPrimitives {
             clock,
             calls: Vec::new(),
             holds: Vec::new(),
+            conditions: VecDeque::new(),
+            decided: Vec::new(),
         }
+    }
+
+    /// The plan's conditions take these values, in order (`true` once they run out); only
+    /// for schedules (a seeded source draws them).
+    pub fn with_conditions(mut self, values: impl IntoIterator<Item = bool>) -> Self {
+        self.conditions = values.into_iter().collect();
+        self
     }
 
     /// Outcomes and durations drawn from `model`; `seed` decides everything. The outcome and
@@ -253,15 +268,20 @@ impl ScriptedPrimitives {
         outcomes.set_stream(1);
         let mut durations = ChaCha8Rng::seed_from_u64(seed);
         durations.set_stream(2);
+        let mut conditions = ChaCha8Rng::seed_from_u64(seed);
+        conditions.set_stream(3);
         Self {
             source: Source::Seeded(Box::new(Seeded {
                 model,
                 outcomes,
                 durations,
+                conditions,
             })),
             clock,
             calls: Vec::new(),
             holds: Vec::new(),
+            conditions: VecDeque::new(),
+            decided: Vec::new(),
         }
     }
 
@@ -276,6 +296,7 @@ impl ScriptedPrimitives {
                     model,
                     outcomes,
                     durations,
+                    ..
                 } = &mut **seeded;
                 let weights = model.weights_for(name);
                 let total: f64 = weights.iter().sum();
@@ -310,6 +331,24 @@ impl Primitives for ScriptedPrimitives {
             token,
         });
         token.outcome_for(req.kind, req.throw + 1)
+    }
+
+    /// A condition's value comes from the schedule (or, seeded, is an even draw): nothing
+    /// is observed. A needle query takes one estimator cycle (1.5 s) of simulated time.
+    fn observe(&mut self, req: &ObserveRequest<'_>) -> Observation {
+        if req.needle {
+            let cycle = OutcomeModel::default().duration_for("estimate_needle");
+            self.clock.sleep(Duration::from_secs_f64(cycle));
+        }
+        let value = match &mut self.source {
+            Source::Schedule(_) => self.conditions.pop_front().unwrap_or(true),
+            Source::Seeded(seeded) => seeded.conditions.random::<bool>(),
+        };
+        self.decided.push(value);
+        Observation {
+            scripted: Some(value),
+            ..Observation::default()
+        }
     }
 
     fn hold_all(&mut self) -> Result<(), PrimitiveError> {

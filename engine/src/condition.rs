@@ -1,0 +1,545 @@
+//! Conditions a plan branches on: typed, decided by the runner at run time from what the
+//! robot observes (a needle estimate, where the jaws are) and from the mission's own
+//! bookkeeping (throw, interventions, retries, thread pulled) — never from a simulator's
+//! hidden truth.
+//!
+//! A script builds them symbolically: `needle_confidence() >= 0.8` is not a number but a
+//! [`Condition`], evaluated each time the plan reaches it. A comparison on a needle the
+//! robot has never seen is false (there is no value to compare); `needle_seen()` says
+//! whether the query saw it.
+
+use serde::{Deserialize, Serialize};
+use std::fmt;
+use stitch_primitives::Observation;
+
+/// A comparison.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Cmp {
+    /// `<`
+    Lt,
+    /// `<=`
+    Le,
+    /// `>`
+    Gt,
+    /// `>=`
+    Ge,
+    /// `==` (whole-number quantities only)
+    Eq,
+    /// `!=` (whole-number quantities only)
+    Ne,
+}
+
+impl Cmp {
+    /// The operator as scripts write it.
+    pub fn symbol(self) -> &'static str {
+        match self {
+            Cmp::Lt => "<",
+            Cmp::Le => "<=",
+            Cmp::Gt => ">",
+            Cmp::Ge => ">=",
+            Cmp::Eq => "==",
+            Cmp::Ne => "!=",
+        }
+    }
+
+    fn holds(self, a: f64, b: f64) -> bool {
+        match self {
+            Cmp::Lt => a < b,
+            Cmp::Le => a <= b,
+            Cmp::Gt => a > b,
+            Cmp::Ge => a >= b,
+            // Whole numbers only (validated when the script builds the condition).
+            Cmp::Eq => (a - b).abs() < 0.5,
+            Cmp::Ne => (a - b).abs() >= 0.5,
+        }
+    }
+}
+
+/// The kind of value a quantity has: what a script must compare it with.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Unit {
+    /// A plain number (the estimator's confidence, 0 to 1).
+    Number,
+    /// A length, m (scripts write `mm(..)`, `cm(..)`, `m(..)`).
+    Length,
+    /// An angle, rad (`deg(..)`, `rad(..)`).
+    Angle,
+    /// A time, s (`s(..)`, `ms(..)`).
+    Time,
+    /// A whole number.
+    Count,
+}
+
+impl Unit {
+    /// What a script compares a quantity of this kind with, in words.
+    pub fn expected(self) -> &'static str {
+        match self {
+            Unit::Number => "a number",
+            Unit::Length => "a length, written mm(..), cm(..) or m(..)",
+            Unit::Angle => "an angle, written deg(..) or rad(..)",
+            Unit::Time => "a time, written s(..) or ms(..)",
+            Unit::Count => "a whole number",
+        }
+    }
+}
+
+/// A place a needle end can be measured against.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Target {
+    /// A point in the robot frame, m.
+    Point([f64; 3]),
+    /// The right (PSM1) jaw's tip, as the arm measures it.
+    RightJaw,
+    /// The left (PSM2) jaw's tip.
+    LeftJaw,
+}
+
+impl fmt::Display for Target {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Target::Point([x, y, z]) => write!(
+                f,
+                "point(mm({:.1}), mm({:.1}), mm({:.1}))",
+                x * 1e3,
+                y * 1e3,
+                z * 1e3
+            ),
+            Target::RightJaw => f.write_str("right_jaw()"),
+            Target::LeftJaw => f.write_str("left_jaw()"),
+        }
+    }
+}
+
+/// Which end of the needle.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum End {
+    /// The sharp tip.
+    Tip,
+    /// The swage, where the thread leaves.
+    Swage,
+}
+
+/// A quantity a condition compares.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "of", rename_all = "snake_case")]
+pub enum Quantity {
+    /// The latest needle estimate's confidence, 0 to 1.
+    NeedleConfidence,
+    /// The angle between the latest estimate's normal and a direction (robot frame), rad.
+    NeedleNormalAngle {
+        /// The direction, a unit vector.
+        to: [f64; 3],
+    },
+    /// The distance from a needle end (latest estimate) to a target, m.
+    NeedleEndDistance {
+        /// Which end.
+        end: End,
+        /// To what.
+        to: Target,
+    },
+    /// How old the latest needle estimate is, s (infinite if there is none).
+    NeedleAge,
+    /// Thread left: the mission's `thread_length` less what the cinches pulled, m.
+    ThreadLeft,
+    /// The throw under way, 1-based.
+    ThrowNumber,
+    /// Interventions the robot may still ask for.
+    InterventionsLeft,
+    /// Retries the machine granted in this throw so far.
+    RetriesUsed,
+}
+
+impl Quantity {
+    /// The kind of value it has.
+    pub fn unit(&self) -> Unit {
+        match self {
+            Quantity::NeedleConfidence => Unit::Number,
+            Quantity::NeedleNormalAngle { .. } => Unit::Angle,
+            Quantity::NeedleEndDistance { .. } | Quantity::ThreadLeft => Unit::Length,
+            Quantity::NeedleAge => Unit::Time,
+            Quantity::ThrowNumber | Quantity::InterventionsLeft | Quantity::RetriesUsed => {
+                Unit::Count
+            }
+        }
+    }
+
+    /// Whether it is read from a needle query (a perception observation).
+    pub fn needs_needle(&self) -> bool {
+        matches!(
+            self,
+            Quantity::NeedleConfidence
+                | Quantity::NeedleNormalAngle { .. }
+                | Quantity::NeedleEndDistance { .. }
+                | Quantity::NeedleAge
+        )
+    }
+
+    /// The quantity as a script writes it.
+    pub fn describe(&self) -> String {
+        match self {
+            Quantity::NeedleConfidence => "needle_confidence()".into(),
+            Quantity::NeedleNormalAngle { to: [x, y, z] } => {
+                format!("needle_normal_angle(direction({x}, {y}, {z}))")
+            }
+            Quantity::NeedleEndDistance { end, to } => format!(
+                "needle_{}_distance({to})",
+                match end {
+                    End::Tip => "tip",
+                    End::Swage => "swage",
+                }
+            ),
+            Quantity::NeedleAge => "needle_age()".into(),
+            Quantity::ThreadLeft => "thread_left()".into(),
+            Quantity::ThrowNumber => "throw_number()".into(),
+            Quantity::InterventionsLeft => "interventions_left()".into(),
+            Quantity::RetriesUsed => "retries_used()".into(),
+        }
+    }
+
+    fn bound(&self, v: f64) -> String {
+        match self.unit() {
+            Unit::Number => format!("{v}"),
+            Unit::Length => format!("mm({})", round(v * 1e3)),
+            Unit::Angle => format!("deg({})", round(v.to_degrees())),
+            Unit::Time => format!("s({})", round(v)),
+            Unit::Count => format!("{}", v.round() as i64),
+        }
+    }
+}
+
+fn round(v: f64) -> f64 {
+    (v * 1e6).round() / 1e6
+}
+
+/// A condition a plan branches on.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "if", rename_all = "snake_case")]
+pub enum Condition {
+    /// The needle query made for this condition saw the needle.
+    NeedleSeen,
+    /// A quantity compared with a bound (SI units: m, rad, s).
+    Compare {
+        /// What.
+        quantity: Quantity,
+        /// How.
+        cmp: Cmp,
+        /// With what.
+        bound: f64,
+    },
+    /// Every one holds (true if empty).
+    All {
+        /// The conditions.
+        of: Vec<Condition>,
+    },
+    /// At least one holds (false if empty).
+    Any {
+        /// The conditions.
+        of: Vec<Condition>,
+    },
+    /// It does not hold.
+    Not {
+        /// The condition.
+        of: Box<Condition>,
+    },
+}
+
+/// What the engine itself knows when a condition is decided.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct MissionFacts {
+    /// The throw under way, 1-based.
+    pub throw_number: usize,
+    /// Interventions the robot may still ask for.
+    pub interventions_left: u8,
+    /// Retries granted in this throw so far.
+    pub retries_used: u8,
+    /// The mission's thread length less what the cinches pulled, m; `None` if the plan gives
+    /// no thread length.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub thread_left_m: Option<f64>,
+}
+
+/// What a condition was decided on: the observation (if a query ran), the time, the facts.
+#[derive(Clone, Copy, Debug)]
+pub struct Facts<'a> {
+    /// What the robot observed for this condition.
+    pub observation: &'a Observation,
+    /// The run's clock when it was decided, s.
+    pub now_s: f64,
+    /// The engine's bookkeeping.
+    pub mission: MissionFacts,
+}
+
+impl Condition {
+    /// Whether deciding it needs a needle query.
+    pub fn needs_needle(&self) -> bool {
+        match self {
+            Condition::NeedleSeen => true,
+            Condition::Compare { quantity, .. } => quantity.needs_needle(),
+            Condition::All { of } | Condition::Any { of } => of.iter().any(Self::needs_needle),
+            Condition::Not { of } => of.needs_needle(),
+        }
+    }
+
+    /// Whether any part reads `q`'s kind of quantity (compared by variant).
+    pub fn reads(&self, q: &Quantity) -> bool {
+        match self {
+            Condition::NeedleSeen => false,
+            Condition::Compare { quantity, .. } => {
+                std::mem::discriminant(quantity) == std::mem::discriminant(q)
+            }
+            Condition::All { of } | Condition::Any { of } => of.iter().any(|c| c.reads(q)),
+            Condition::Not { of } => of.reads(q),
+        }
+    }
+
+    /// Decide it.
+    pub fn eval(&self, f: &Facts<'_>) -> bool {
+        match self {
+            Condition::NeedleSeen => f.observation.needle_now,
+            Condition::Compare {
+                quantity,
+                cmp,
+                bound,
+            } => value(quantity, f).is_some_and(|v| cmp.holds(v, *bound)),
+            Condition::All { of } => of.iter().all(|c| c.eval(f)),
+            Condition::Any { of } => of.iter().any(|c| c.eval(f)),
+            Condition::Not { of } => !of.eval(f),
+        }
+    }
+
+    /// Decide it from the engine's facts alone, where they settle it (`None` where it
+    /// depends on what the robot observes): the model checker branches only on the rest.
+    pub fn eval_known(&self, m: &MissionFacts) -> Option<bool> {
+        match self {
+            Condition::NeedleSeen => None,
+            Condition::Compare {
+                quantity,
+                cmp,
+                bound,
+            } => mission_value(quantity, m).map(|v| v.is_some_and(|v| cmp.holds(v, *bound))),
+            Condition::All { of } => {
+                let mut all = Some(true);
+                for c in of {
+                    match c.eval_known(m) {
+                        Some(false) => return Some(false),
+                        None => all = None,
+                        Some(true) => {}
+                    }
+                }
+                all
+            }
+            Condition::Any { of } => {
+                let mut any = Some(false);
+                for c in of {
+                    match c.eval_known(m) {
+                        Some(true) => return Some(true),
+                        None => any = None,
+                        Some(false) => {}
+                    }
+                }
+                any
+            }
+            Condition::Not { of } => of.eval_known(m).map(|v| !v),
+        }
+    }
+}
+
+/// The value of a mission quantity (`Some(None)`: known to have no value), or `None` for a
+/// quantity read from observations.
+fn mission_value(q: &Quantity, m: &MissionFacts) -> Option<Option<f64>> {
+    Some(match q {
+        Quantity::ThreadLeft => m.thread_left_m,
+        Quantity::ThrowNumber => Some(m.throw_number as f64),
+        Quantity::InterventionsLeft => Some(f64::from(m.interventions_left)),
+        Quantity::RetriesUsed => Some(f64::from(m.retries_used)),
+        _ => return None,
+    })
+}
+
+fn value(q: &Quantity, f: &Facts<'_>) -> Option<f64> {
+    if let Some(v) = mission_value(q, &f.mission) {
+        return v;
+    }
+    let seen = f.observation.needle.as_ref();
+    match q {
+        Quantity::NeedleAge => Some(seen.map_or(f64::INFINITY, |n| (f.now_s - n.stamp_s).max(0.0))),
+        Quantity::NeedleConfidence => seen.map(|n| n.confidence),
+        Quantity::NeedleNormalAngle { to } => seen.map(|n| {
+            let d = stitch_robot::Vector::new(to[0], to[1], to[2]);
+            n.normal.angle(&d)
+        }),
+        Quantity::NeedleEndDistance { end, to } => {
+            let n = seen?;
+            let from = match end {
+                End::Tip => n.tip,
+                End::Swage => n.swage,
+            };
+            let at = match to {
+                Target::Point(p) => stitch_robot::Point::new(p[0], p[1], p[2]),
+                Target::RightJaw => f.observation.right_jaw?,
+                Target::LeftJaw => f.observation.left_jaw?,
+            };
+            Some((from - at).norm())
+        }
+        _ => None,
+    }
+}
+
+impl fmt::Display for Condition {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Condition::NeedleSeen => f.write_str("needle_seen()"),
+            Condition::Compare {
+                quantity,
+                cmp,
+                bound,
+            } => write!(
+                f,
+                "{} {} {}",
+                quantity.describe(),
+                cmp.symbol(),
+                quantity.bound(*bound)
+            ),
+            Condition::All { of } | Condition::Any { of } => {
+                f.write_str(if matches!(self, Condition::All { .. }) {
+                    "all(["
+                } else {
+                    "any(["
+                })?;
+                for (i, c) in of.iter().enumerate() {
+                    if i > 0 {
+                        f.write_str(", ")?;
+                    }
+                    write!(f, "{c}")?;
+                }
+                f.write_str("])")
+            }
+            Condition::Not { of } => write!(f, "not({of})"),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use stitch_primitives::NeedleSeen;
+    use stitch_robot::{Point, Vector};
+
+    fn facts(obs: &Observation) -> Facts<'_> {
+        Facts {
+            observation: obs,
+            now_s: 10.0,
+            mission: MissionFacts {
+                throw_number: 2,
+                interventions_left: 1,
+                retries_used: 0,
+                thread_left_m: None,
+            },
+        }
+    }
+
+    fn seen() -> Observation {
+        Observation {
+            needle: Some(NeedleSeen {
+                center: Point::origin(),
+                normal: Vector::y(),
+                tip: Point::new(0.012, 0.0, 0.0),
+                swage: Point::new(-0.012, 0.0, 0.0),
+                confidence: 0.7,
+                stamp_s: 9.0,
+            }),
+            needle_now: true,
+            right_jaw: Some(Point::new(-0.012, 0.0, 0.002)),
+            ..Observation::default()
+        }
+    }
+
+    fn cmp(quantity: Quantity, cmp: Cmp, bound: f64) -> Condition {
+        Condition::Compare {
+            quantity,
+            cmp,
+            bound,
+        }
+    }
+
+    #[test]
+    fn needle_quantities_read_the_latest_estimate_and_are_false_without_one() {
+        let obs = seen();
+        let f = facts(&obs);
+        assert!(cmp(Quantity::NeedleConfidence, Cmp::Lt, 0.8).eval(&f));
+        assert!(!cmp(Quantity::NeedleConfidence, Cmp::Ge, 0.8).eval(&f));
+        let angle = cmp(
+            Quantity::NeedleNormalAngle {
+                to: [0.0, 1.0, 0.0],
+            },
+            Cmp::Le,
+            1f64.to_radians(),
+        );
+        assert!(angle.eval(&f));
+        let near_jaw = cmp(
+            Quantity::NeedleEndDistance {
+                end: End::Swage,
+                to: Target::RightJaw,
+            },
+            Cmp::Lt,
+            0.003,
+        );
+        assert!(near_jaw.eval(&f), "2 mm from the jaw");
+        assert!(cmp(Quantity::NeedleAge, Cmp::Lt, 1.5).eval(&f), "1 s old");
+        let none = Observation::default();
+        let f = facts(&none);
+        assert!(!cmp(Quantity::NeedleConfidence, Cmp::Lt, 0.8).eval(&f));
+        assert!(!cmp(Quantity::NeedleConfidence, Cmp::Ge, 0.8).eval(&f));
+        assert!(
+            cmp(Quantity::NeedleAge, Cmp::Gt, 1e9).eval(&f),
+            "never seen: infinitely old"
+        );
+        assert!(!Condition::NeedleSeen.eval(&f));
+    }
+
+    #[test]
+    fn the_engine_settles_mission_conditions_and_leaves_the_rest_open() {
+        let m = facts(&Observation::default()).mission;
+        let throw2 = cmp(Quantity::ThrowNumber, Cmp::Eq, 2.0);
+        assert_eq!(throw2.eval_known(&m), Some(true));
+        let unsure = cmp(Quantity::NeedleConfidence, Cmp::Lt, 0.8);
+        let both = Condition::All {
+            of: vec![throw2.clone(), unsure.clone()],
+        };
+        assert_eq!(both.eval_known(&m), None);
+        let either = Condition::Any {
+            of: vec![unsure.clone(), throw2.clone()],
+        };
+        assert_eq!(either.eval_known(&m), Some(true));
+        let not_first = Condition::Not {
+            of: Box::new(cmp(Quantity::ThrowNumber, Cmp::Eq, 1.0)),
+        };
+        assert_eq!(not_first.eval_known(&m), Some(true));
+        // No thread length given: no value, so no comparison holds.
+        assert_eq!(
+            cmp(Quantity::ThreadLeft, Cmp::Lt, 1.0).eval_known(&m),
+            Some(false)
+        );
+    }
+
+    #[test]
+    fn conditions_print_as_scripts_write_them() {
+        let c = Condition::All {
+            of: vec![
+                cmp(Quantity::NeedleConfidence, Cmp::Ge, 0.8),
+                Condition::Not {
+                    of: Box::new(cmp(Quantity::NeedleAge, Cmp::Gt, 2.0)),
+                },
+                cmp(Quantity::ThreadLeft, Cmp::Lt, 0.05),
+            ],
+        };
+        assert_eq!(
+            c.to_string(),
+            "all([needle_confidence() >= 0.8, not(needle_age() > s(2)), thread_left() < mm(50)])"
+        );
+    }
+}
