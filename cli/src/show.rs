@@ -204,7 +204,15 @@ pub fn timeline_of(run: &Rebuilt, source: &str, robot: &str, clock: &str) -> Str
             t.retries,
             t.interventions
         );
+        let mut decisions = t.decisions.iter().peekable();
         for a in &t.attempts {
+            while let Some(d) = decisions.next_if(|d| d.at_s <= a.start_s) {
+                let _ = writeln!(
+                    s,
+                    "  {:>7.1} s  decided {} → {}",
+                    d.at_s, d.condition, d.value
+                );
+            }
             let label = attempt_label(a.primitive, a.attempt);
             let _ = writeln!(
                 s,
@@ -221,6 +229,13 @@ pub fn timeline_of(run: &Rebuilt, source: &str, robot: &str, clock: &str) -> Str
                 };
                 let _ = writeln!(s, "  {:>9}  human intervention: {how}", "");
             }
+        }
+        for d in decisions {
+            let _ = writeln!(
+                s,
+                "  {:>7.1} s  decided {} → {}",
+                d.at_s, d.condition, d.value
+            );
         }
         if let Some(u) = under_way {
             let label = attempt_label(&u.primitive, u.attempt);
@@ -293,9 +308,20 @@ pub fn exploration(
         found.elapsed.as_secs_f64()
     );
     let outcomes: Vec<&str> = options.outcomes.iter().map(|t| t.as_str()).collect();
+    let reached = |state: &str| found.edges.keys().any(|(a, b)| *a == state || *b == state);
+    let mut also = String::new();
+    if reached("deciding") {
+        also.push_str(
+            " both values of every condition on what the robot observes (the engine's own \
+             counters decided exactly; every loop count up to its bound),",
+        );
+    }
+    if reached("at_checkpoint") {
+        also.push_str(" every answer at a checkpoint (go, take-over, abort, e-stop),");
+    }
     let _ = writeln!(
         s,
-        "  branching on every step outcome ({}), every intervention result, and up to {} \
+        "  branching on every step outcome ({}),{also} every intervention result, and up to {} \
          supervisor commands per path",
         outcomes.join(", "),
         options.max_commands

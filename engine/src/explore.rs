@@ -659,7 +659,15 @@ pub fn explore(plan: Arc<Plan>, options: ExploreOptions) -> Exploration {
     let states = checker.unique_state_count();
     let discovered: BTreeSet<&'static str> = checker.discoveries().keys().copied().collect();
     let model = checker.model();
-    let graph = Graph::build(model);
+    let mut graph = Graph::build(model);
+    // The start: `ready` to the plan's first state (dispatched before the model begins).
+    if let Some(first) = graph.states.first() {
+        graph
+            .edges
+            .entry(("ready", state_parts(first.state()).0))
+            .or_default()
+            .insert("start".to_string());
+    }
     let verdicts = PROPERTY_NAMES
         .iter()
         .map(|(name, says)| {
@@ -895,6 +903,8 @@ pub fn mermaid(edges: &BTreeMap<(&'static str, &'static str), BTreeSet<String>>)
                 | "handing_over"
                 | "correcting"
                 | "perceiving"
+                | "deciding"
+                | "at_checkpoint"
                 | "awaiting_intervention"
         )
     };
@@ -903,8 +913,7 @@ pub fn mermaid(edges: &BTreeMap<(&'static str, &'static str), BTreeSet<String>>)
         nodes.insert(a);
         nodes.insert(b);
     }
-    let mut s =
-        String::from("stateDiagram-v2\n    [*] --> ready\n    ready --> inserting : start\n");
+    let mut s = String::from("stateDiagram-v2\n    [*] --> ready\n");
     s.push_str("    state supervised {\n        state mission {\n            state throw {\n");
     for n in nodes.iter().filter(|n| in_throw(n)) {
         s.push_str(&format!("                {n}\n"));

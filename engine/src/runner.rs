@@ -35,11 +35,27 @@ pub struct Attempt {
     pub intervention: Option<InterventionResult>,
 }
 
+/// A plan's condition as the runner decided it, for timelines.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Decision {
+    /// Program index, 0-based.
+    pub step: usize,
+    /// When it was decided, s.
+    pub at_s: f64,
+    /// The condition, as the script writes it.
+    pub condition: String,
+    /// Its value.
+    pub value: bool,
+}
+
 /// What happened in one throw.
 #[derive(Clone, Debug, Default, PartialEq, Serialize)]
 pub struct ThrowSummary {
     /// Every step attempt, in order.
     pub attempts: Vec<Attempt>,
+    /// Every condition decided, in order.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub decisions: Vec<Decision>,
     /// Retries the machine granted in this throw.
     pub retries: u32,
     /// Interventions requested in this throw.
@@ -247,6 +263,14 @@ impl<'a> Runner<'a> {
                 mission,
             })
         });
+        if let Some(t) = self.throws.get_mut(c.throw) {
+            t.decisions.push(Decision {
+                step: c.step,
+                at_s: now.as_secs_f64(),
+                condition: cond.to_string(),
+                value,
+            });
+        }
         self.ctx.journal.set_now(now);
         self.ctx.journal.push(Entry::Condition {
             throw: c.throw,
@@ -549,7 +573,23 @@ impl Rebuilt {
                 Entry::Plan { .. } => {
                     return Err(format!("record {}: a second plan record", r.seq));
                 }
-                Entry::Condition { throw: t, .. } | Entry::Checkpoint { throw: t, .. } => {
+                Entry::Condition {
+                    throw: t,
+                    step,
+                    condition,
+                    value,
+                    ..
+                } => {
+                    let t = throw(*t, &mut out)?;
+                    reached = reached.max(Some(t));
+                    out.throws[t].decisions.push(Decision {
+                        step: *step,
+                        at_s: r.t_s,
+                        condition: condition.clone(),
+                        value: *value,
+                    });
+                }
+                Entry::Checkpoint { throw: t, .. } => {
                     let t = throw(*t, &mut out)?;
                     reached = reached.max(Some(t));
                 }

@@ -52,7 +52,12 @@ fn replay(plan: &Plan, schedule: OutcomeSchedule) -> (stitch_engine::Report, Vec
 
 #[test]
 fn the_six_throw_stitch_plans_satisfy_every_property() {
-    for name in ["stitch.rhai", "stitch_human.rhai"] {
+    for name in [
+        "stitch.rhai",
+        "stitch_human.rhai",
+        "stitch_reactive.rhai",
+        "stitch_reactive_human.rhai",
+    ] {
         let plan = script(name);
         assert_eq!(plan.throws.len(), 6);
         let found = explore(Arc::new(plan), ExploreOptions::default());
@@ -181,7 +186,7 @@ const END: &str = "<!-- END GENERATED STATE DIAGRAM -->";
 #[test]
 fn the_committed_state_diagram_is_the_one_the_exploration_generates() {
     let found = explore(
-        Arc::new(script("stitch_human.rhai")),
+        Arc::new(script("stitch_reactive_human.rhai")),
         ExploreOptions::default(),
     );
     let fresh = format!("{BEGIN}\n```mermaid\n{}```\n{END}", mermaid(&found.edges));
@@ -195,7 +200,7 @@ fn the_committed_state_diagram_is_the_one_the_exploration_generates() {
     assert!(
         committed == fresh,
         "docs/ARCHITECTURE.md's state diagram is stale; regenerate it with\n  \
-         cargo run -p stitch-cli -- check scripts/stitch_human.rhai --explore --diagram docs/ARCHITECTURE.md"
+         cargo run -p stitch-cli -- check scripts/stitch_reactive_human.rhai --explore --diagram docs/ARCHITECTURE.md"
     );
     // It shows every kind of state the machine can be in.
     for state in [
@@ -205,6 +210,9 @@ fn the_committed_state_diagram_is_the_one_the_exploration_generates() {
         "cinching",
         "handing_over",
         "correcting",
+        "perceiving",
+        "deciding",
+        "at_checkpoint",
         "awaiting_intervention",
         "paused",
         "taken_over",

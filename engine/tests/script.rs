@@ -36,6 +36,13 @@ fn the_shipped_policies_load_and_validate() {
         ("thread_handling.rhai", "Thread Handling", 6, 5, 0),
         // Unrolled: 3 needle queries, the 6 steps, 2 more corrections.
         ("stitch_reactive.rhai", "STITCH Reactive", 6, 11, 0),
+        (
+            "stitch_reactive_human.rhai",
+            "STITCH Reactive + Human",
+            6,
+            11,
+            2,
+        ),
     ] {
         let loaded = load_plan(&loader(), &scripts().join(file)).unwrap_or_else(|e| panic!("{e}"));
         let plan = loaded.plan;
