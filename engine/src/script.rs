@@ -97,7 +97,7 @@ pub const API: &[(&str, &str)] = &[
     ),
     (
         "insert",
-        "insert() or insert(#{ rotation: deg(..), push: mm(..), standoff: cm(..) })",
+        "insert() or insert(#{ rotation: deg(..), push: mm(..), standoff: cm(..), samples: 0..20 })",
     ),
     (
         "sweep",
