@@ -160,7 +160,7 @@ fn a_needle_out_of_sight_makes_needle_comparisons_false_and_needle_seen_false() 
         "needle_age() < s(1000)",
     ] {
         let report = on_mock(&load(&branching_on(cond)), blind, vec![]);
-        assert_eq!(decided(&report)[0].1, false, "{cond}");
+        assert!(!decided(&report)[0].1, "{cond}");
         assert_eq!(attempted(&report)[0], "track_thread", "{cond}");
     }
 }

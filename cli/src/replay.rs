@@ -401,6 +401,16 @@ struct RanOut {
     at: Option<(usize, String)>,
 }
 
+impl RanOut {
+    /// Note the first place the run went past the recording.
+    fn first(cell: &std::cell::RefCell<RanOut>, at: usize, why: impl FnOnce() -> String) {
+        let mut r = cell.borrow_mut();
+        if r.at.is_none() {
+            r.at = Some((at, why()));
+        }
+    }
+}
+
 /// Primitives that answer each attempt with the next outcome the recording holds for a step
 /// of its kind, taking as long as that attempt took; nothing moves.
 struct RecordedOutcomes {
@@ -423,18 +433,14 @@ impl Primitives for RecordedOutcomes {
                 outcome
             }
             None => {
-                let mut r = self.ran_out.borrow_mut();
-                if r.at.is_none() {
-                    r.at = Some((
-                        i,
-                        format!(
-                            "throw {} step {} ({name}) asks for more `{name}` outcomes than the \
-                             recording holds",
-                            req.throw + 1,
-                            req.step + 1
-                        ),
-                    ));
-                }
+                RanOut::first(&self.ran_out, i, || {
+                    format!(
+                        "throw {} step {} ({name}) asks for more `{name}` outcomes than the \
+                         recording holds",
+                        req.throw + 1,
+                        req.step + 1
+                    )
+                });
                 StepOutcome::Failed(Failure {
                     kind: FailureKind::ArmFault {
                         message: "no recorded outcome (what-if replay)".into(),
@@ -454,16 +460,12 @@ impl Primitives for RecordedOutcomes {
                 ..Observation::default()
             },
             None => {
-                let mut r = self.ran_out.borrow_mut();
-                if r.at.is_none() {
-                    r.at = Some((
-                        self.attempts,
-                        format!(
-                            "throw {} decides more conditions than the recording holds",
-                            req.throw + 1
-                        ),
-                    ));
-                }
+                RanOut::first(&self.ran_out, self.attempts, || {
+                    format!(
+                        "throw {} decides more conditions than the recording holds",
+                        req.throw + 1
+                    )
+                });
                 Observation {
                     scripted: Some(false),
                     ..Observation::default()
@@ -514,15 +516,13 @@ impl Supervisor for RecordedSupervisor {
         match self.checkpoints.pop_front() {
             Some(c) => Some(c),
             None => {
-                let mut r = self.ran_out.borrow_mut();
-                r.at = Some((
-                    self.attempts,
+                RanOut::first(&self.ran_out, self.attempts, || {
                     format!(
                         "throw {} reaches a checkpoint (\"{}\") the recording does not hold",
                         request.throw + 1,
                         request.label
-                    ),
-                ));
+                    )
+                });
                 Some(SupervisorCommand::Abort)
             }
         }
@@ -532,17 +532,13 @@ impl Supervisor for RecordedSupervisor {
         match self.interventions.pop_front() {
             Some(r) => r,
             None => {
-                let mut r = self.ran_out.borrow_mut();
-                if r.at.is_none() {
-                    r.at = Some((
-                        self.attempts,
-                        format!(
-                            "throw {} step {} asks for an intervention the recording does not hold",
-                            request.throw + 1,
-                            request.step + 1
-                        ),
-                    ));
-                }
+                RanOut::first(&self.ran_out, self.attempts, || {
+                    format!(
+                        "throw {} step {} asks for an intervention the recording does not hold",
+                        request.throw + 1,
+                        request.step + 1
+                    )
+                });
                 InterventionResult::Recovered
             }
         }

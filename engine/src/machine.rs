@@ -343,6 +343,14 @@ fn stop(ctx: &mut Ctx, command: SupervisorCommand, cursor: Cursor) -> Outcome<St
     Transition(State::aborted(cursor, by))
 }
 
+/// Journal a command the machine acts on.
+fn acted(ctx: &mut Ctx, command: SupervisorCommand) {
+    ctx.journal.push(Entry::Supervisor {
+        command,
+        acted: true,
+    });
+}
+
 fn supervisor_ignored(ctx: &mut Ctx, command: SupervisorCommand) -> Outcome<State> {
     ctx.journal.push(Entry::Supervisor {
         command,
@@ -465,10 +473,7 @@ impl Mission {
     ) -> Outcome<State> {
         match event {
             Event::Supervisor(SupervisorCommand::Go) => {
-                context.journal.push(Entry::Supervisor {
-                    command: SupervisorCommand::Go,
-                    acted: true,
-                });
+                acted(context, SupervisorCommand::Go);
                 Transition(self.next_state(*cursor))
             }
             // Already holding, waiting on the surgeon: a pause changes nothing.
@@ -515,17 +520,11 @@ impl Mission {
     fn throw(cursor: &mut Cursor, context: &mut Ctx, event: &Event) -> Outcome<State> {
         match event {
             Event::Supervisor(SupervisorCommand::Pause) => {
-                context.journal.push(Entry::Supervisor {
-                    command: SupervisorCommand::Pause,
-                    acted: true,
-                });
+                acted(context, SupervisorCommand::Pause);
                 Transition(State::paused(*cursor))
             }
             Event::Supervisor(SupervisorCommand::TakeOver) => {
-                context.journal.push(Entry::Supervisor {
-                    command: SupervisorCommand::TakeOver,
-                    acted: true,
-                });
+                acted(context, SupervisorCommand::TakeOver);
                 Transition(State::taken_over(*cursor))
             }
             Event::Supervisor(
@@ -549,17 +548,11 @@ impl Mission {
     fn paused(&mut self, cursor: &mut Cursor, context: &mut Ctx, event: &Event) -> Outcome<State> {
         match event {
             Event::Supervisor(SupervisorCommand::Resume) => {
-                context.journal.push(Entry::Supervisor {
-                    command: SupervisorCommand::Resume,
-                    acted: true,
-                });
+                acted(context, SupervisorCommand::Resume);
                 Transition(self.step_state(*cursor))
             }
             Event::Supervisor(SupervisorCommand::TakeOver) => {
-                context.journal.push(Entry::Supervisor {
-                    command: SupervisorCommand::TakeOver,
-                    acted: true,
-                });
+                acted(context, SupervisorCommand::TakeOver);
                 Transition(State::taken_over(*cursor))
             }
             Event::Supervisor(c @ (SupervisorCommand::Pause | SupervisorCommand::HandBack)) => {
@@ -579,10 +572,7 @@ impl Mission {
     ) -> Outcome<State> {
         match event {
             Event::Supervisor(SupervisorCommand::HandBack) => {
-                context.journal.push(Entry::Supervisor {
-                    command: SupervisorCommand::HandBack,
-                    acted: true,
-                });
+                acted(context, SupervisorCommand::HandBack);
                 Transition(self.step_state(*cursor))
             }
             Event::Supervisor(

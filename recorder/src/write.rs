@@ -23,7 +23,7 @@ use stitch_robot::Clock;
 #[derive(Debug)]
 pub(crate) enum Item {
     /// An engine event.
-    Record(Record),
+    Record(Box<Record>),
     /// A message already encoded: telemetry, an estimate, a log line, a frame.
     Message {
         /// Topic.
@@ -321,7 +321,7 @@ impl Recorder {
                 }
                 _ => {}
             }
-            shared.send(Item::Record(r.clone()));
+            shared.send(Item::Record(Box::new(r.clone())));
         })
     }
 
