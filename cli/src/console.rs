@@ -226,4 +226,28 @@ mod tests {
         let (mut s, _) = console(&[], true);
         assert_eq!(s.intervene(&request()), InterventionResult::Failed);
     }
+
+    #[test]
+    fn a_checkpoint_waits_for_go_or_a_stop_and_end_of_input_aborts() {
+        let request = CheckpointRequest {
+            throw: 0,
+            step: 0,
+            label: "first insertion".into(),
+        };
+        let (mut s, said) = console(&["resume", "Go"], false);
+        assert_eq!(s.checkpoint(&request), Some(SupervisorCommand::Go));
+        let said = said.lock().expect("said").join("\n");
+        assert!(
+            said.contains("\"first insertion\". The arms hold."),
+            "{said}"
+        );
+        assert!(
+            said.contains("`resume` does not answer a checkpoint"),
+            "{said}"
+        );
+        let (mut s, _) = console(&["e-stop"], false);
+        assert_eq!(s.checkpoint(&request), Some(SupervisorCommand::EStop));
+        let (mut s, _) = console(&[], true);
+        assert_eq!(s.checkpoint(&request), None, "input closed: the run aborts");
+    }
 }
