@@ -274,6 +274,17 @@ pub struct Facts<'a> {
 }
 
 impl Condition {
+    /// Its terms: leaves and combinators, counted (saturating).
+    pub fn terms(&self) -> usize {
+        match self {
+            Condition::NeedleSeen | Condition::Compare { .. } => 1,
+            Condition::All { of } | Condition::Any { of } => {
+                of.iter().fold(1usize, |n, c| n.saturating_add(c.terms()))
+            }
+            Condition::Not { of } => of.terms().saturating_add(1),
+        }
+    }
+
     /// Whether deciding it needs a needle query.
     pub fn needs_needle(&self) -> bool {
         match self {

@@ -28,6 +28,8 @@ pub mod caps {
     pub const NESTING: usize = 3;
     /// Operations in a throw's compiled program (loops unrolled), a sanity bound.
     pub const OPS_PER_THROW: usize = 256;
+    /// Terms (comparisons and combinators) in one condition, a sanity bound.
+    pub const CONDITION_TERMS: usize = 64;
 }
 
 /// A position in a plan script, 1-based.

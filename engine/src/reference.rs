@@ -42,7 +42,8 @@ pub fn reference_markdown() -> String {
         s,
         "\nEngine caps: retries {} (extract), {} (handover), {} (perception); interventions \
          {}; throws {}; `repeat` max {}; constructs nested {} deep; {} steps on a throw's \
-         longest path.\n",
+         longest path; {} operations in a throw's program (loops unrolled); {} terms in a \
+         condition.\n",
         caps::EXTRACT_RETRIES,
         caps::HANDOVER_RETRIES,
         caps::PERCEPTION_RETRIES,
@@ -50,7 +51,9 @@ pub fn reference_markdown() -> String {
         caps::THROWS,
         caps::REPEAT,
         caps::NESTING,
-        caps::STEPS_PER_THROW
+        caps::STEPS_PER_THROW,
+        caps::OPS_PER_THROW,
+        caps::CONDITION_TERMS
     );
     for name in STEP_NAMES {
         let Some(kind) = StepKind::default_for(name) else {

@@ -759,7 +759,35 @@ fn block(ctx: &NativeCallContext, what: &str, node: Node, inner: usize) -> RhaiR
             ),
         ));
     }
+    // A block is opaque to the sandbox's size limits: bound it here, before it is copied
+    // into arrays or other blocks.
+    let ops = unrolled_len(std::slice::from_ref(&node));
+    if ops > caps::OPS_PER_THROW {
+        return Err(runtime(
+            ctx,
+            format!(
+                "{what}: unrolls to {ops} operations (loops at their bound); a throw's limit is {}",
+                caps::OPS_PER_THROW
+            ),
+        ));
+    }
     Ok(Block(node))
+}
+
+/// A combination, refused if it grows past the engine's bound on a condition's terms (a
+/// condition is opaque to the sandbox's size limits: `c = all([c, c])` in a loop doubles).
+fn combined(ctx: &NativeCallContext, what: &str, c: Condition) -> RhaiResult<Condition> {
+    let terms = c.terms();
+    if terms > caps::CONDITION_TERMS {
+        return Err(runtime(
+            ctx,
+            format!(
+                "{what}: the condition has {terms} terms; the limit is {}",
+                caps::CONDITION_TERMS
+            ),
+        ));
+    }
+    Ok(c)
 }
 
 fn as_condition(ctx: &NativeCallContext, what: &str, v: Dynamic) -> RhaiResult<Condition> {
@@ -970,25 +998,28 @@ fn register_conditions(engine: &mut rhai::Engine) {
     engine.register_fn(
         "all",
         |ctx: NativeCallContext, items: Array| -> RhaiResult<Condition> {
-            Ok(Condition::All {
+            let c = Condition::All {
                 of: conditions(&ctx, "all", items)?,
-            })
+            };
+            combined(&ctx, "all", c)
         },
     );
     engine.register_fn(
         "any",
         |ctx: NativeCallContext, items: Array| -> RhaiResult<Condition> {
-            Ok(Condition::Any {
+            let c = Condition::Any {
                 of: conditions(&ctx, "any", items)?,
-            })
+            };
+            combined(&ctx, "any", c)
         },
     );
     engine.register_fn(
         "not",
         |ctx: NativeCallContext, c: Dynamic| -> RhaiResult<Condition> {
-            Ok(Condition::Not {
+            let c = Condition::Not {
                 of: Box::new(as_condition(&ctx, "not", c)?),
-            })
+            };
+            combined(&ctx, "not", c)
         },
     );
 

@@ -320,3 +320,31 @@ fn conditions_and_constructs_are_checked_where_the_script_builds_them() {
     );
     assert!(e.starts_with("plan.rhai:1:"), "{e}");
 }
+
+/// Constructs and conditions are opaque to the sandbox's size limits, so the engine bounds
+/// them: a script that doubles a condition or nests big blocks in a loop stops with a clear
+/// error, fast, instead of exhausting memory.
+#[test]
+fn hostile_scripts_cannot_grow_conditions_or_blocks_without_bound() {
+    let doubling = "let c = needle_seen();\nfor i in 0..200 { c = all([c, c]); }\n\
+                    mission(#{ name: \"x\", throws: [] })";
+    let t0 = Instant::now();
+    let e = error_of(doubling);
+    assert!(
+        e.contains("all: the condition has 127 terms; the limit is 64"),
+        "{e}"
+    );
+    assert!(t0.elapsed() < Duration::from_secs(1));
+    let nesting = "let a = [];\nfor i in 0..1000 { a.push(estimate_needle()); }\n\
+                   let b = [];\nfor i in 0..1000 { b.push(repeat(#{ max: 5 }, a)); }\n\
+                   mission(#{ name: \"x\", throws: [] })";
+    let t0 = Instant::now();
+    let e = error_of(nesting);
+    assert!(
+        e.contains(
+            "repeat: unrolls to 5000 operations (loops at their bound); a throw's limit is 256"
+        ),
+        "{e}"
+    );
+    assert!(t0.elapsed() < Duration::from_secs(1));
+}

@@ -101,6 +101,10 @@ pub struct Observation {
     /// The left jaw's tip, as PSM2 measures it.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub left_jaw: Option<Point>,
+    /// What went wrong while observing (an arm that did not report its pose): the
+    /// observation lacks that part, and says why.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub faults: Vec<String>,
     /// A value a schedule dictates instead of an observation (scripted primitives and
     /// replays of model-checker paths only; a robot never sets it).
     #[serde(default, skip_serializing_if = "Option::is_none")]

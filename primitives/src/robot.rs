@@ -709,21 +709,16 @@ impl Primitives for RobotPrimitives {
     }
 
     fn observe(&mut self, req: &ObserveRequest<'_>) -> Observation {
-        let mut obs = Observation {
-            right_jaw: self
-                .rig
-                .right
-                .measured_cp()
-                .ok()
-                .map(|p| Point::from(p.translation.vector)),
-            left_jaw: self
-                .rig
-                .left
-                .measured_cp()
-                .ok()
-                .map(|p| Point::from(p.translation.vector)),
-            ..Observation::default()
-        };
+        let mut obs = Observation::default();
+        for (name, arm, slot) in [
+            ("right arm", &self.rig.right, &mut obs.right_jaw),
+            ("left arm", &self.rig.left, &mut obs.left_jaw),
+        ] {
+            match arm.measured_cp() {
+                Ok(p) => *slot = Some(Point::from(p.translation.vector)),
+                Err(e) => obs.faults.push(format!("{name}: {e}")),
+            }
+        }
         if req.needle {
             let hint = match req.needle_at {
                 NeedleAt::RightJaw => self.held_hint(Hand::Right, NeedleEnd::Swage),
