@@ -325,6 +325,13 @@ fn a_checkpoint_holds_the_run_until_the_supervisors_go() {
         .expect("the arms held at the checkpoint");
     assert!(hold < at && at < go && go < first_step, "{entries:?}");
     assert_eq!(report.outcome, RunOutcome::Completed);
+    // The throw's summary (what timelines print) says the surgeon confirmed it.
+    let seen = &report.throws[0].checkpoints;
+    assert_eq!(seen.len(), 1);
+    assert_eq!(
+        (seen[0].label.as_str(), seen[0].answer),
+        ("first insertion", Some(SupervisorCommand::Go))
+    );
 }
 
 #[test]

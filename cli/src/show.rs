@@ -117,6 +117,23 @@ fn nodes_tree(s: &mut String, nodes: &[Node], indent: usize, n: &mut usize) {
     }
 }
 
+fn checkpoint_line(s: &mut String, c: &stitch_engine::CheckpointSeen) {
+    let answer = c.answer.map_or("no answer".to_string(), |a| a.to_string());
+    let _ = writeln!(
+        s,
+        "  {:>7.1} s  checkpoint \"{}\": {answer}",
+        c.at_s, c.label
+    );
+}
+
+fn decision_line(s: &mut String, d: &stitch_engine::Decision) {
+    let _ = writeln!(
+        s,
+        "  {:>7.1} s  decided {} → {}",
+        d.at_s, d.condition, d.value
+    );
+}
+
 fn outcome_text(o: &StepOutcome) -> String {
     match o {
         StepOutcome::Succeeded { measured } => {
@@ -190,7 +207,11 @@ pub fn timeline_of(run: &Rebuilt, source: &str, robot: &str, clock: &str) -> Str
     let _ = writeln!(s, "{} on {robot}, {source}", run.plan.name);
     for (i, t) in run.throws.iter().enumerate() {
         let under_way = run.under_way.as_ref().filter(|u| u.throw == i);
-        if t.attempts.is_empty() && under_way.is_none() {
+        if t.attempts.is_empty()
+            && under_way.is_none()
+            && t.checkpoints.is_empty()
+            && t.decisions.is_empty()
+        {
             continue;
         }
         let start = t.attempts.first().map_or(0.0, |a| a.start_s);
@@ -205,13 +226,13 @@ pub fn timeline_of(run: &Rebuilt, source: &str, robot: &str, clock: &str) -> Str
             t.interventions
         );
         let mut decisions = t.decisions.iter().peekable();
+        let mut checkpoints = t.checkpoints.iter().peekable();
         for a in &t.attempts {
+            while let Some(c) = checkpoints.next_if(|c| c.at_s <= a.start_s) {
+                checkpoint_line(&mut s, c);
+            }
             while let Some(d) = decisions.next_if(|d| d.at_s <= a.start_s) {
-                let _ = writeln!(
-                    s,
-                    "  {:>7.1} s  decided {} → {}",
-                    d.at_s, d.condition, d.value
-                );
+                decision_line(&mut s, d);
             }
             let label = attempt_label(a.primitive, a.attempt);
             let _ = writeln!(
@@ -230,12 +251,11 @@ pub fn timeline_of(run: &Rebuilt, source: &str, robot: &str, clock: &str) -> Str
                 let _ = writeln!(s, "  {:>9}  human intervention: {how}", "");
             }
         }
+        for c in checkpoints {
+            checkpoint_line(&mut s, c);
+        }
         for d in decisions {
-            let _ = writeln!(
-                s,
-                "  {:>7.1} s  decided {} → {}",
-                d.at_s, d.condition, d.value
-            );
+            decision_line(&mut s, d);
         }
         if let Some(u) = under_way {
             let label = attempt_label(&u.primitive, u.attempt);

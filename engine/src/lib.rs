@@ -28,7 +28,9 @@ pub use plan::{
     Throw, caps,
 };
 pub use reference::{REFERENCE_BEGIN, REFERENCE_END, reference_markdown};
-pub use runner::{Attempt, Decision, PlanHeader, Rebuilt, Report, Runner, ThrowSummary, UnderWay};
+pub use runner::{
+    Attempt, CheckpointSeen, Decision, PlanHeader, Rebuilt, Report, Runner, ThrowSummary, UnderWay,
+};
 pub use schedule::{OutcomeSchedule, ScheduleError};
 pub use script::{API, Angle, Length, Loaded, PlanLoader, ScriptLimits, Time};
 pub use supervisor::{

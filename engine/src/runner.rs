@@ -48,6 +48,19 @@ pub struct Decision {
     pub value: bool,
 }
 
+/// A checkpoint the run reached, and the supervisor's answer, for timelines.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct CheckpointSeen {
+    /// Program index, 0-based.
+    pub step: usize,
+    /// When the run reached it, s.
+    pub at_s: f64,
+    /// What the surgeon confirms.
+    pub label: String,
+    /// The answer; `None` if none came (the supervisor was gone, or the journal stops).
+    pub answer: Option<crate::supervisor::SupervisorCommand>,
+}
+
 /// What happened in one throw.
 #[derive(Clone, Debug, Default, PartialEq, Serialize)]
 pub struct ThrowSummary {
@@ -56,6 +69,9 @@ pub struct ThrowSummary {
     /// Every condition decided, in order.
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub decisions: Vec<Decision>,
+    /// Every checkpoint reached, in order.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub checkpoints: Vec<CheckpointSeen>,
     /// Retries the machine granted in this throw.
     pub retries: u32,
     /// Interventions requested in this throw.
@@ -216,12 +232,22 @@ impl<'a> Runner<'a> {
                         step: c.step,
                         label: label.clone(),
                     });
+                    let at_s = self.clock.now().as_secs_f64();
                     let request = CheckpointRequest {
                         throw: c.throw,
                         step: c.step,
                         label,
                     };
-                    let event = match self.supervisor.checkpoint(&request) {
+                    let answer = self.supervisor.checkpoint(&request);
+                    if let Some(t) = self.throws.get_mut(c.throw) {
+                        t.checkpoints.push(CheckpointSeen {
+                            step: c.step,
+                            at_s,
+                            label: request.label,
+                            answer,
+                        });
+                    }
+                    let event = match answer {
                         Some(command) => Event::Supervisor(command),
                         None => Event::SupervisorLost,
                     };
@@ -499,6 +525,7 @@ impl Rebuilt {
         };
         let mut started: Option<f64> = None;
         let mut reached: Option<usize> = None;
+        let mut waiting: Option<usize> = None;
         for r in &records[1..] {
             out.duration_s = r.t_s;
             let throw = |t: usize, out: &mut Self| -> Result<usize, String> {
@@ -589,11 +616,30 @@ impl Rebuilt {
                         value: *value,
                     });
                 }
-                Entry::Checkpoint { throw: t, .. } => {
+                Entry::Checkpoint {
+                    throw: t,
+                    step,
+                    label,
+                } => {
                     let t = throw(*t, &mut out)?;
                     reached = reached.max(Some(t));
+                    out.throws[t].checkpoints.push(CheckpointSeen {
+                        step: *step,
+                        at_s: r.t_s,
+                        label: label.clone(),
+                        answer: None,
+                    });
+                    waiting = Some(t);
                 }
-                Entry::Transition { .. } | Entry::Supervisor { .. } | Entry::Hold { .. } => {}
+                // The command that answers a checkpoint is the next one journaled.
+                Entry::Supervisor { command, .. } => {
+                    if let Some(t) = waiting.take() {
+                        if let Some(c) = out.throws[t].checkpoints.last_mut() {
+                            c.answer = Some(*command);
+                        }
+                    }
+                }
+                Entry::Transition { .. } | Entry::Hold { .. } => {}
             }
         }
         // The last throw the run reached: by a step, a condition, a checkpoint, or where it
