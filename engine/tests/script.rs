@@ -348,3 +348,39 @@ fn hostile_scripts_cannot_grow_conditions_or_blocks_without_bound() {
     );
     assert!(t0.elapsed() < Duration::from_secs(1));
 }
+
+/// Data that grows by doubling or nesting is stopped by the sandbox's size limits, fast. Rhai
+/// checks the whole of each value stored (nested arrays and maps included), so one map can
+/// hold at most 64 values of 1,024 elements each, and storing that map anywhere is refused:
+/// about 65,000 elements at most, a few MB.
+#[test]
+fn doubling_strings_and_nesting_arrays_and_maps_are_stopped_within_a_second() {
+    for (what, script) in [
+        ("string", "let s = \"x\";\nloop { s += s; }"),
+        (
+            "nested arrays",
+            "let a = [];\nfor i in 0..1000 { a.push(i); }\nlet b = [];\nfor i in 0..1000 { b.push(a); }",
+        ),
+        (
+            "a map of arrays",
+            "let a = [];\nfor i in 0..1000 { a.push(i); }\nlet m = #{};\nfor i in 0..60 { m[`k${i}`] = a; }\n\
+             let m2 = #{};\nfor i in 0..60 { m2[`k${i}`] = m; }",
+        ),
+        (
+            "closures capturing arrays",
+            "let a = [];\nfor i in 0..1000 { a.push(i); }\nlet fs = [];\nfor i in 0..1000 { fs.push(|| a); }\nlet all = [];\nfor f in fs { all.push(f.call()); }",
+        ),
+    ] {
+        let t0 = Instant::now();
+        let e = error_of(script);
+        assert!(
+            t0.elapsed() < Duration::from_secs(1),
+            "{what}: took {:?}",
+            t0.elapsed()
+        );
+        assert!(
+            e.contains("stopped by the sandbox") || e.contains("too large"),
+            "{what}: {e}"
+        );
+    }
+}
