@@ -332,31 +332,25 @@ impl Condition {
                 cmp,
                 bound,
             } => mission_value(quantity, m).map(|v| v.is_some_and(|v| cmp.holds(v, *bound))),
-            Condition::All { of } => {
-                let mut all = Some(true);
-                for c in of {
-                    match c.eval_known(m) {
-                        Some(false) => return Some(false),
-                        None => all = None,
-                        Some(true) => {}
-                    }
-                }
-                all
-            }
-            Condition::Any { of } => {
-                let mut any = Some(false);
-                for c in of {
-                    match c.eval_known(m) {
-                        Some(true) => return Some(true),
-                        None => any = None,
-                        Some(false) => {}
-                    }
-                }
-                any
-            }
+            Condition::All { of } => known_fold(of, m, false),
+            Condition::Any { of } => known_fold(of, m, true),
             Condition::Not { of } => of.eval_known(m).map(|v| !v),
         }
     }
+}
+
+/// `all` (`decisive` false) or `any` (`decisive` true) in three values: the decisive value
+/// if any term has it, else unknown if any term is, else the other value.
+fn known_fold(of: &[Condition], m: &MissionFacts, decisive: bool) -> Option<bool> {
+    let mut value = Some(!decisive);
+    for c in of {
+        match c.eval_known(m) {
+            Some(v) if v == decisive => return Some(decisive),
+            None => value = None,
+            Some(_) => {}
+        }
+    }
+    value
 }
 
 /// The value of a mission quantity (`Some(None)`: known to have no value), or `None` for a

@@ -223,14 +223,6 @@ impl Throw {
             .enumerate()
             .filter_map(|(i, op)| Some((i, op.step()?)))
     }
-
-    /// Whether the throw is done once the step at `at` succeeds with no condition in
-    /// between: no operation after it can attempt a step.
-    pub fn ends_after(&self, at: usize) -> bool {
-        self.program
-            .get(at + 1..)
-            .is_none_or(|rest| rest.iter().all(|op| matches!(op, Op::Jump { .. })))
-    }
 }
 
 /// Unroll `nodes` into `out`. Jump targets are absolute indices into `out`.

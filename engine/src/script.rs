@@ -995,24 +995,16 @@ fn register_conditions(engine: &mut rhai::Engine) {
         b.0
     ));
 
-    engine.register_fn(
-        "all",
-        |ctx: NativeCallContext, items: Array| -> RhaiResult<Condition> {
-            let c = Condition::All {
-                of: conditions(&ctx, "all", items)?,
-            };
-            combined(&ctx, "all", c)
-        },
-    );
-    engine.register_fn(
-        "any",
-        |ctx: NativeCallContext, items: Array| -> RhaiResult<Condition> {
-            let c = Condition::Any {
-                of: conditions(&ctx, "any", items)?,
-            };
-            combined(&ctx, "any", c)
-        },
-    );
+    let all: fn(Vec<Condition>) -> Condition = |of| Condition::All { of };
+    let any: fn(Vec<Condition>) -> Condition = |of| Condition::Any { of };
+    for (name, make) in [("all", all), ("any", any)] {
+        engine.register_fn(
+            name,
+            move |ctx: NativeCallContext, items: Array| -> RhaiResult<Condition> {
+                combined(&ctx, name, make(conditions(&ctx, name, items)?))
+            },
+        );
+    }
     engine.register_fn(
         "not",
         |ctx: NativeCallContext, c: Dynamic| -> RhaiResult<Condition> {
