@@ -38,6 +38,9 @@ pub struct DvrkConfig {
     pub settle_timeout_s: f64,
     /// Measurements older than this (by stamp, or since they arrived) are refused.
     pub stale_after_s: f64,
+    /// A read that finds the latest measurement missing or older than `stale_after_s` waits
+    /// up to this long for a fresh one before refusing it, s.
+    pub stale_wait_s: f64,
     /// Distance from the goal a finished move may end at, m.
     pub position_tolerance_m: f64,
     /// Angle from the goal a finished move may end at, rad.
@@ -68,6 +71,7 @@ impl Default for DvrkConfig {
             move_timeout_s: 30.0,
             settle_timeout_s: 0.5,
             stale_after_s: 0.25,
+            stale_wait_s: 0.5,
             position_tolerance_m: 0.002,
             rotation_tolerance_rad: 2f64.to_radians(),
             jaw_tolerance_rad: 5f64.to_radians(),
@@ -95,6 +99,7 @@ impl DvrkConfig {
             ("move_timeout_s", self.move_timeout_s),
             ("settle_timeout_s", self.settle_timeout_s),
             ("stale_after_s", self.stale_after_s),
+            ("stale_wait_s", self.stale_wait_s),
             ("resend_after_s", self.resend_after_s),
         ] {
             if !(v.is_finite() && v > 0.0 && v <= 3600.0) {
@@ -135,6 +140,63 @@ fn secs(s: f64) -> Duration {
     Duration::from_secs_f64(s)
 }
 
+/// `m` if it is valid and fresh: received, with a non-zero stamp, and no older than
+/// `stale_after_s` by its stamp or since it arrived.
+fn check_fresh<'a, T>(
+    arm: &str,
+    stale_after_s: f64,
+    what: &str,
+    m: &'a Option<(T, Instant)>,
+    stamp: impl Fn(&T) -> msg::Time,
+) -> Result<&'a T, RobotError> {
+    let fault = |message: String| RobotError::Fault {
+        arm: arm.to_string(),
+        message,
+    };
+    let Some((msg, at)) = m else {
+        return Err(fault(format!("no {what} received from the dVRK")));
+    };
+    let stamp = stamp(msg);
+    if stamp.is_zero() {
+        return Err(fault(format!(
+            "{what} has a zero stamp: the dVRK marks invalid data so"
+        )));
+    }
+    let age_s = crate::ros2::stamp_age_s(&stamp).max(at.elapsed().as_secs_f64());
+    if age_s > stale_after_s {
+        return Err(RobotError::Stale {
+            arm: arm.to_string(),
+            age_s,
+        });
+    }
+    Ok(msg)
+}
+
+/// [`ArmLink::read_fresh`] over what the bus thread heard and the condition it signals.
+fn read_fresh<T: Clone>(
+    arm: &str,
+    config: &DvrkConfig,
+    (heard, changed): (&Mutex<Heard>, &Condvar),
+    what: &str,
+    pick: impl Fn(&Heard) -> &Option<(T, Instant)>,
+    stamp: impl Fn(&T) -> msg::Time + Copy,
+) -> Result<T, RobotError> {
+    let deadline = Instant::now() + secs(config.stale_wait_s);
+    let check = |h: &Heard| check_fresh(arm, config.stale_after_s, what, pick(h), stamp).cloned();
+    // Wake at least every 20 ms: staleness is judged by the clock, not by messages.
+    let tick = Duration::from_millis(20);
+    let waited = crate::ros2::wait_for(heard, changed, deadline, tick, |h| match check(h) {
+        Ok(m) => Some(Ok(m)),
+        Err(RobotError::Stale { .. }) => None,
+        Err(_) if pick(h).is_none() => None,
+        Err(e) => Some(Err(e)),
+    });
+    match waited {
+        Some(r) => r,
+        None => check(&heard.lock().unwrap_or_else(PoisonError::into_inner)),
+    }
+}
+
 /// What one arm has said, as the bus thread received it.
 #[derive(Debug, Default)]
 struct Heard {
@@ -158,8 +220,6 @@ struct Heard {
     latched_at: Option<Instant>,
     /// Errors already reported by a failed command.
     errors_reported: usize,
-    /// The last message that could not be read.
-    unreadable: Option<String>,
 }
 
 impl Heard {
@@ -259,34 +319,36 @@ impl ArmLink {
         m: &'a Option<(T, Instant)>,
         stamp: impl Fn(&T) -> msg::Time,
     ) -> Result<&'a T, RobotError> {
-        let Some((msg, at)) = m else {
-            return Err(self.fault(format!("no {what} received from the dVRK")));
-        };
-        let stamp = stamp(msg);
-        if stamp.is_zero() {
-            return Err(self.fault(format!(
-                "{what} has a zero stamp: the dVRK marks invalid data so"
-            )));
-        }
-        let age_s = crate::ros2::stamp_age_s(&stamp).max(at.elapsed().as_secs_f64());
-        if age_s > self.config.stale_after_s {
-            return Err(RobotError::Stale {
-                arm: self.name.clone(),
-                age_s,
-            });
-        }
-        Ok(msg)
+        check_fresh(&self.name, self.config.stale_after_s, what, m, stamp)
+    }
+
+    /// The latest measurement `pick` takes from what was heard, once fresh: one that is
+    /// missing or older than the bound is waited for up to `stale_wait_s` (a busy host that
+    /// delivered it late is not a dVRK gone silent), then refused as [`fresh`](Self::fresh)
+    /// refuses it. Invalid data (a zero stamp) is refused at once.
+    fn read_fresh<T: Clone>(
+        &self,
+        what: &str,
+        pick: impl Fn(&Heard) -> &Option<(T, Instant)>,
+        stamp: impl Fn(&T) -> msg::Time + Copy,
+    ) -> Result<T, RobotError> {
+        read_fresh(
+            &self.name,
+            &self.config,
+            (&self.heard, &self.changed),
+            what,
+            pick,
+            stamp,
+        )
     }
 
     fn measured_cp(&self) -> Result<Pose, RobotError> {
-        let heard = self.heard();
-        let m = self.fresh("measured_cp", &heard.measured, |m| m.header.stamp)?;
-        crate::pose_from_msg(m).map_err(|e| self.fault(format!("measured_cp: {e}")))
+        let m = self.read_fresh("measured_cp", |h| &h.measured, |m| m.header.stamp)?;
+        crate::pose_from_msg(&m).map_err(|e| self.fault(format!("measured_cp: {e}")))
     }
 
     fn measured_jaw(&self) -> Result<f64, RobotError> {
-        let heard = self.heard();
-        let m = self.fresh("jaw/measured_js", &heard.jaw, |m| m.header.stamp)?;
+        let m = self.read_fresh("jaw/measured_js", |h| &h.jaw, |m| m.header.stamp)?;
         match m.position.first() {
             Some(v) if v.is_finite() => Ok(*v),
             _ => Err(self.fault(format!(
@@ -731,7 +793,11 @@ fn listen(bus: &mut Bus, link: &Arc<ArmLink>) -> Result<(), String> {
                 let mut heard = link.heard();
                 match r {
                     Ok(m) => apply(&mut heard, m),
-                    Err(e) => heard.unreadable = Some(e),
+                    // A message from the dVRK that cannot be read is not dropped: it counts as
+                    // an error, reported by the next command (as an `error` would be).
+                    Err(e) => heard
+                        .errors
+                        .push(format!("a message it sent could not be read: {e}")),
                 }
             }
             link.changed.notify_all();
@@ -1116,11 +1182,10 @@ impl Arm for Ros2Arm {
     }
 
     fn setpoint_cp(&self) -> Result<Pose, RobotError> {
-        let heard = self.link.heard();
         let m = self
             .link
-            .fresh("setpoint_cp", &heard.setpoint, |m| m.header.stamp)?;
-        crate::pose_from_msg(m).map_err(|e| self.link.fault(format!("setpoint_cp: {e}")))
+            .read_fresh("setpoint_cp", |h| &h.setpoint, |m| m.header.stamp)?;
+        crate::pose_from_msg(&m).map_err(|e| self.link.fault(format!("setpoint_cp: {e}")))
     }
 
     fn move_cp(&self, goal: &Pose) -> Result<MoveHandle, RobotError> {
@@ -1186,6 +1251,80 @@ impl Jaw for Ros2Jaw {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn measured_at(age_s: f64) -> Option<(PoseStamped, Instant)> {
+        let t = now_stamp().as_secs_f64() - age_s;
+        let stamp = msg::Time {
+            sec: t.floor() as i32,
+            nanosec: (t.fract() * 1e9) as u32,
+        };
+        let mut m = PoseStamped::default();
+        m.header.stamp = stamp;
+        m.pose.orientation.w = 1.0;
+        Some((m, Instant::now()))
+    }
+
+    fn read(heard: &Mutex<Heard>, cv: &Condvar) -> Result<PoseStamped, RobotError> {
+        read_fresh(
+            "PSM1",
+            &DvrkConfig::default(),
+            (heard, cv),
+            "measured_cp",
+            |h| &h.measured,
+            |m| m.header.stamp,
+        )
+    }
+
+    #[test]
+    fn a_measurement_delivered_late_is_waited_for_and_one_that_stays_stale_is_refused() {
+        // Stale now (0.4 s old, bound 0.25 s); a fresh one arrives 100 ms later, within
+        // the 0.5 s wait: the read returns the fresh one.
+        let shared = Arc::new((
+            Mutex::new(Heard {
+                measured: measured_at(0.4),
+                ..Heard::default()
+            }),
+            Condvar::new(),
+        ));
+        let other = Arc::clone(&shared);
+        let late = std::thread::spawn(move || {
+            std::thread::sleep(Duration::from_millis(100));
+            other.0.lock().expect("lock").measured = measured_at(0.0);
+            other.1.notify_all();
+        });
+        let m = read(&shared.0, &shared.1).expect("the late measurement");
+        assert!(crate::ros2::stamp_age_s(&m.header.stamp) < 0.25);
+        late.join().expect("thread");
+        // Nothing newer comes: refused as stale once the wait is over, not before.
+        let stale = Mutex::new(Heard {
+            measured: measured_at(0.4),
+            ..Heard::default()
+        });
+        let t0 = Instant::now();
+        let e = read(&stale, &Condvar::new()).expect_err("stale");
+        assert!(matches!(e, RobotError::Stale { .. }), "{e}");
+        assert!(
+            t0.elapsed() >= Duration::from_millis(450),
+            "{:?}",
+            t0.elapsed()
+        );
+        // Invalid data (a zero stamp) is refused at once.
+        let mut zero = measured_at(0.0);
+        if let Some((m, _)) = zero.as_mut() {
+            m.header.stamp = msg::Time::default();
+        }
+        let t0 = Instant::now();
+        let e = read(
+            &Mutex::new(Heard {
+                measured: zero,
+                ..Heard::default()
+            }),
+            &Condvar::new(),
+        )
+        .expect_err("zero stamp");
+        assert!(e.to_string().contains("zero stamp"), "{e}");
+        assert!(t0.elapsed() < Duration::from_millis(200));
+    }
 
     #[test]
     fn the_defaults_are_valid_and_bad_values_are_named() {

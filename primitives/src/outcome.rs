@@ -5,7 +5,7 @@ use serde::{Deserialize, Serialize};
 
 /// Measurements a step took, for recovery conditions and for the throw's record. `None` when
 /// the step does not measure it.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Measurements {
     /// How far the grasped needle endpoint moved during an extraction, m.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -25,6 +25,10 @@ pub struct Measurements {
     /// Thread left on the needle's side after this step, where something can tell, m.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub thread_left_m: Option<f64>,
+    /// Why the needle estimator gave no estimate, each cycle of this step it gave none (a
+    /// typed perception failure): a step that waited on the needle says what it saw instead.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub perception_failures: Vec<String>,
 }
 
 /// Why a step failed. The engine decides retry, intervention or failure from this and the

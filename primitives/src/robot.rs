@@ -130,18 +130,17 @@ pub struct RobotPrimitives {
     last_estimate: Option<NeedleEstimate>,
     /// The end the left jaw grasped at the last extraction.
     left_end: NeedleEnd,
+    /// Why the estimator gave no estimate, each cycle of the current step it gave none.
+    unseen: Vec<String>,
 }
 
-/// A step that cannot go on, and why.
-type Step<T> = Result<T, Failure>;
+/// A step that cannot go on, and why (boxed: a failure carries its measurements).
+type Step<T> = Result<T, Box<Failure>>;
 
-fn fault(e: RobotError) -> Failure {
-    Failure {
-        kind: FailureKind::ArmFault {
-            message: e.to_string(),
-        },
-        measured: Measurements::default(),
-    }
+fn fault(e: RobotError) -> Box<Failure> {
+    failed(FailureKind::ArmFault {
+        message: e.to_string(),
+    })
 }
 
 /// Which arm, for perception hints.
@@ -155,11 +154,16 @@ enum Hand {
 /// insertion, and where the handover puts it back).
 const RIGHT_AT_SWAGE: Option<(Hand, NeedleEnd)> = Some((Hand::Right, NeedleEnd::Swage));
 
-fn failed(kind: FailureKind) -> Failure {
-    Failure {
+fn failed(kind: FailureKind) -> Box<Failure> {
+    Box::new(Failure {
         kind,
         measured: Measurements::default(),
-    }
+    })
+}
+
+/// The hint for a needle held by a jaw at `jaw`, nearer `end`.
+fn held_at(jaw: Point, end: NeedleEnd) -> NeedleHint {
+    NeedleHint::Held(JawHint { jaw, end })
 }
 
 /// A pose at `p` with rotation `r`.
@@ -275,6 +279,7 @@ impl RobotPrimitives {
             last_point: None,
             last_estimate: None,
             left_end: NeedleEnd::Tip,
+            unseen: Vec::new(),
         }
     }
 
@@ -295,27 +300,29 @@ impl RobotPrimitives {
     /// A needle estimate, waiting up to [`ESTIMATE_TRIES`] estimator cycles for one; `held`
     /// says which arm holds the needle nearer which end, if one does.
     fn estimate(&mut self, held: Option<(Hand, NeedleEnd)>) -> Step<NeedleEstimate> {
-        let hint = held.and_then(|(hand, end)| self.held_hint(hand, end));
+        let hint = match held {
+            Some((hand, end)) => Some(self.held_hint(hand, end)?),
+            None => None,
+        };
         self.estimate_with(hint)
     }
 
-    /// Where the jaw of `hand` is, holding the needle nearer `end`.
-    fn held_hint(&self, hand: Hand, end: NeedleEnd) -> Option<NeedleHint> {
+    /// Where the jaw of `hand` is, holding the needle nearer `end`. An arm that cannot say
+    /// where it is (a stale or failed `measured_cp`) stops the step as an arm fault: the
+    /// estimate is never made without the jaw it was meant to use.
+    fn held_hint(&self, hand: Hand, end: NeedleEnd) -> Step<NeedleHint> {
         let arm = match hand {
             Hand::Right => &self.rig.right,
             Hand::Left => &self.rig.left,
         };
-        arm.measured_cp().ok().map(|p| {
-            NeedleHint::Held(JawHint {
-                jaw: Point::from(p.translation.vector),
-                end,
-            })
-        })
+        let p = arm.measured_cp().map_err(fault)?;
+        Ok(held_at(Point::from(p.translation.vector), end))
     }
 
-    /// One estimator cycle: an estimate, or none this cycle (nothing seen, too uncertain);
-    /// a camera that fails (no frames, unusable images) is a fault of the robot, not a
-    /// needle out of sight, and stops the step.
+    /// One estimator cycle: an estimate, or none this cycle (nothing seen, too uncertain:
+    /// the reason is kept for the step's measurements); a camera that fails (no frames,
+    /// unusable images) is a fault of the robot, not a needle out of sight, and stops the
+    /// step.
     fn sample(&mut self, hint: Option<&NeedleHint>) -> Step<Option<NeedleEstimate>> {
         match self.rig.estimator.estimate_needle_with(hint) {
             Ok(e) => {
@@ -325,7 +332,10 @@ impl RobotPrimitives {
             Err(PerceptionError::Camera { message }) => Err(failed(FailureKind::ArmFault {
                 message: format!("perception: {message}"),
             })),
-            Err(_) => Ok(None),
+            Err(e) => {
+                self.unseen.push(e.to_string());
+                Ok(None)
+            }
         }
     }
 
@@ -363,9 +373,9 @@ impl RobotPrimitives {
                 // Average the fresh estimates of the needle in the jaw (positions by mean,
                 // rotations by the normalised quaternion sum); one must come.
                 let mut grasps = vec![tool.inverse() * self.estimate(RIGHT_AT_SWAGE)?.pose];
-                let hint = self.held_hint(Hand::Right, NeedleEnd::Swage);
+                let hint = self.held_hint(Hand::Right, NeedleEnd::Swage)?;
                 for _ in 1..p.samples.max(1) {
-                    if let Some(e) = self.sample(hint.as_ref())? {
+                    if let Some(e) = self.sample(Some(&hint))? {
                         grasps.push(tool.inverse() * e.pose);
                     }
                 }
@@ -388,13 +398,13 @@ impl RobotPrimitives {
             measured.exit_error_m = pass.exit_error_m;
             measured.thread_left_m = Some(o.thread_left_m());
             if let Some(kind) = o.problem() {
-                return Err(Failure { kind, measured });
+                return Err(Box::new(Failure { kind, measured }));
             }
             if !pass.passed {
-                return Err(Failure {
+                return Err(Box::new(Failure {
                     kind: FailureKind::Missed,
                     measured,
-                });
+                }));
             }
         }
         Ok(measured)
@@ -500,7 +510,7 @@ impl RobotPrimitives {
             .as_mut()
             .is_some_and(|o| o.needle_in_tissue());
         if let Some(kind) = problem {
-            return Err(Failure { kind, measured });
+            return Err(Box::new(Failure { kind, measured }));
         }
         if still_in || travel < p.min_travel_m {
             // Let go and back off, ready for a retry.
@@ -511,7 +521,7 @@ impl RobotPrimitives {
             } else {
                 FailureKind::Missed
             };
-            return Err(Failure { kind, measured });
+            return Err(Box::new(Failure { kind, measured }));
         }
         Ok(measured)
     }
@@ -535,7 +545,7 @@ impl RobotPrimitives {
         let present = pose(self.rig.layout.handover_point, tool.rotation);
         Self::moves(&self.rig.left, &[present])?;
         match self.problem() {
-            Some(kind) => Err(Failure { kind, measured }),
+            Some(kind) => Err(Box::new(Failure { kind, measured })),
             None => Ok(measured),
         }
     }
@@ -603,16 +613,16 @@ impl RobotPrimitives {
             // The grasp did not take: let go, pull back.
             finish(self.rig.right_jaw.open())?;
             Self::moves(&self.rig.right, &[off])?;
-            return Err(Failure {
+            return Err(Box::new(Failure {
                 kind: FailureKind::NoProgress,
                 measured,
-            });
+            }));
         }
         finish(self.rig.left_jaw.open())?;
         let ready = pose(self.rig.layout.left_ready, UnitQuaternion::identity());
         Self::moves(&self.rig.left, &[ready])?;
         match self.problem() {
-            Some(kind) => Err(Failure { kind, measured }),
+            Some(kind) => Err(Box::new(Failure { kind, measured })),
             None => Ok(measured),
         }
     }
@@ -624,10 +634,10 @@ impl RobotPrimitives {
         let to_corner = shifted(&tool, self.rig.layout.correction_point - center);
         Self::moves(&self.rig.right, &[to_corner])?;
         // Average the samples: positions by mean, rotations by the normalised quaternion sum.
-        let hint = self.held_hint(Hand::Right, NeedleEnd::Swage);
+        let hint = self.held_hint(Hand::Right, NeedleEnd::Swage)?;
         let mut grasps = Vec::new();
         for _ in 0..p.samples.max(1) {
-            if let Some(e) = self.sample(hint.as_ref())? {
+            if let Some(e) = self.sample(Some(&hint))? {
                 grasps.push(to_corner.inverse() * e.pose);
             }
         }
@@ -693,6 +703,7 @@ pub fn mean_pose(poses: &[Pose]) -> Pose {
 
 impl Primitives for RobotPrimitives {
     fn run(&mut self, req: &StepRequest<'_>) -> StepOutcome {
+        self.unseen.clear();
         let result = match req.kind {
             StepKind::Insert(p) => self.insert(req.point, p),
             StepKind::Sweep(p) => self.sweep(req.point, p),
@@ -702,9 +713,16 @@ impl Primitives for RobotPrimitives {
             StepKind::Correct(p) => self.correct(p),
             k @ (StepKind::EstimateNeedle(_) | StepKind::TrackThread(_)) => self.perceive(k),
         };
+        let unseen = std::mem::take(&mut self.unseen);
         match result {
-            Ok(measured) => StepOutcome::Succeeded { measured },
-            Err(failure) => StepOutcome::Failed(failure),
+            Ok(mut measured) => {
+                measured.perception_failures = unseen;
+                StepOutcome::Succeeded { measured }
+            }
+            Err(mut failure) => {
+                failure.measured.perception_failures = unseen;
+                StepOutcome::Failed(*failure)
+            }
         }
     }
 
@@ -720,9 +738,11 @@ impl Primitives for RobotPrimitives {
             }
         }
         if req.needle {
+            // The holding jaw's position, as read above: where that read failed (its fault
+            // is listed), no estimate is made this time rather than one without the jaw.
             let hint = match req.needle_at {
-                NeedleAt::RightJaw => self.held_hint(Hand::Right, NeedleEnd::Swage),
-                NeedleAt::LeftJaw => self.held_hint(Hand::Left, self.left_end),
+                NeedleAt::RightJaw => obs.right_jaw.map(|p| held_at(p, NeedleEnd::Swage)),
+                NeedleAt::LeftJaw => obs.left_jaw.map(|p| held_at(p, self.left_end)),
                 NeedleAt::Tissue => {
                     let wp = self.last_point.as_ref().unwrap_or(req.point);
                     Some(NeedleHint::InTissue(TissueHint {
@@ -731,14 +751,28 @@ impl Primitives for RobotPrimitives {
                     }))
                 }
             };
-            // One estimator cycle, as a step's sample takes it; the latest estimate is kept
-            // whether or not this one sees the needle.
-            match self.rig.estimator.estimate_needle_with(hint.as_ref()) {
-                Ok(e) => {
-                    obs.needle_now = true;
-                    self.last_estimate = Some(e);
+            match hint {
+                // One estimator cycle, as a step's sample takes it; the latest estimate is
+                // kept whether or not this one sees the needle.
+                Some(hint) => match self.rig.estimator.estimate_needle_with(Some(&hint)) {
+                    Ok(e) => {
+                        obs.needle_now = true;
+                        self.last_estimate = Some(e);
+                    }
+                    // A failing camera is a fault of the robot, as in a step, not a needle
+                    // out of sight.
+                    Err(e @ PerceptionError::Camera { .. }) => {
+                        obs.faults.push(format!("perception: {e}"));
+                        obs.needle_failure = Some(e.to_string());
+                    }
+                    Err(e) => obs.needle_failure = Some(e.to_string()),
+                },
+                None => {
+                    obs.needle_failure = Some(
+                        "not estimated: the arm holding the needle could not say where it is"
+                            .into(),
+                    );
                 }
-                Err(e) => obs.needle_failure = Some(e.to_string()),
             }
         }
         obs.needle = self.last_estimate.as_ref().map(|e| {

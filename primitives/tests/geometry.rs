@@ -297,3 +297,91 @@ fn a_motion_that_never_finishes_stops_the_step_as_an_arm_fault() {
     // It gave up after the first move: no further motion was sent.
     assert_eq!(right.0.commands().len(), 1);
 }
+
+/// An arm whose `measured_cp` answers `good` times, then only stale (as a dVRK link whose
+/// measurements stopped arriving).
+struct StaleAfter {
+    arm: Arc<DummyArm>,
+    good: usize,
+    reads: std::sync::atomic::AtomicUsize,
+}
+impl stitch_robot::Arm for StaleAfter {
+    fn name(&self) -> &str {
+        "PSM1"
+    }
+    fn measured_cp(&self) -> Result<Pose, stitch_robot::RobotError> {
+        let n = self.reads.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+        if n < self.good {
+            self.arm.measured_cp()
+        } else {
+            Err(stitch_robot::RobotError::Stale {
+                arm: "PSM1".into(),
+                age_s: 0.3,
+            })
+        }
+    }
+    fn setpoint_cp(&self) -> Result<Pose, stitch_robot::RobotError> {
+        self.arm.setpoint_cp()
+    }
+    fn move_cp(&self, goal: &Pose) -> Result<stitch_robot::MoveHandle, stitch_robot::RobotError> {
+        self.arm.move_cp(goal)
+    }
+    fn servo_cp(&self, goal: &Pose) -> Result<(), stitch_robot::RobotError> {
+        self.arm.servo_cp(goal)
+    }
+    fn hold(&self) -> Result<(), stitch_robot::RobotError> {
+        self.arm.hold()
+    }
+}
+
+/// Sees the needle only when told which jaw holds it (as the pipeline, that searches near
+/// the jaw): without the hint, nothing.
+struct NeedsJaw(Arc<DummyArm>, Pose);
+impl NeedleEstimator for NeedsJaw {
+    fn estimate_needle(&mut self) -> Result<NeedleEstimate, PerceptionError> {
+        Err(PerceptionError::NotFound)
+    }
+    fn estimate_needle_with(
+        &mut self,
+        hint: Option<&stitch_perception::NeedleHint>,
+    ) -> Result<NeedleEstimate, PerceptionError> {
+        match hint {
+            Some(stitch_perception::NeedleHint::Held(_)) => {
+                Held(self.0.clone(), self.1).estimate_needle()
+            }
+            _ => Err(PerceptionError::NotFound),
+        }
+    }
+}
+
+#[test]
+fn an_arm_that_cannot_say_where_its_jaw_is_stops_the_step_as_an_arm_fault_not_a_dropout() {
+    // The correction reads the right arm three times: its pose, the jaw for the first
+    // estimate, the jaw for the samples at the corner. The third read is stale: the samples
+    // must not be taken without the jaw (they would see nothing: a dropout that hides the
+    // arm's fault, as one ROS 2 mission once diverged from its in-process twin).
+    let inner = Arc::new(DummyArm::new("PSM1"));
+    *inner.pose.lock().expect("pose") = at(-0.02, 0.01, -0.1);
+    let right = Arc::new(StaleAfter {
+        arm: inner.clone(),
+        good: 2,
+        reads: Default::default(),
+    });
+    let grasp = at(0.01, 0.006, 0.0);
+    let estimator = Box::new(NeedsJaw(inner.clone(), grasp));
+    let mut p = rig(right, Arc::new(DummyArm::new("PSM2")), estimator);
+    match run(&mut p, StepKind::Correct(CorrectParams::default())) {
+        StepOutcome::Failed(f) => match f.kind {
+            FailureKind::ArmFault { message } => {
+                assert!(
+                    message.contains("PSM1: measurement is 0.300 s old"),
+                    "{message}"
+                )
+            }
+            other => panic!("expected an arm fault, got {other:?}"),
+        },
+        other => panic!("{other:?}"),
+    }
+    // It went to the corner and no further: nothing moved after the failed read.
+    assert_eq!(moves(&inner).len(), 1);
+}
