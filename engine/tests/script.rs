@@ -119,6 +119,24 @@ fn a_wrong_unit_names_the_parameter_and_the_expected_unit() {
 }
 
 #[test]
+fn a_negative_count_is_refused_at_its_call_not_read_as_zero() {
+    // `samples: 0` means "insert open loop on the last correction's grasp": a negative
+    // count read as zero would pass validation and change what the robot does.
+    let e = error_of("let s = insert(#{ samples: -1 });");
+    assert!(
+        e.starts_with(
+            "plan.rhai:1:9: insert: `samples` is a count and cannot be negative, found -1"
+        ),
+        "{e}"
+    );
+    let e = error_of("let s = extract(#{ retries: -3 });");
+    assert!(
+        e.contains("`retries` is a count and cannot be negative, found -3"),
+        "{e}"
+    );
+}
+
+#[test]
 fn extract_with_nine_retries_is_refused_at_its_call() {
     let e = error_of(
         "let t = suture(wound()[0], [insert(), sweep(),\n  extract(#{ retries: 9 }), handover()]);\nmission(#{ name: \"x\", throws: [t] })",

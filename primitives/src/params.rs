@@ -448,12 +448,22 @@ impl StepKind {
 
     /// Set a parameter by script name. The value's quantity must match the parameter's
     /// (the caller checks units and reports them); ranges are checked separately so that one
-    /// place (the engine's validation) reports them with the script position. Counts are
-    /// saturated into the field's type so that an out-of-range count still reaches validation.
+    /// place (the engine's validation) reports them with the script position. A negative
+    /// count is refused here (no field could carry it to validation); a count too large for
+    /// its field is saturated, so that it still reaches validation and is refused there.
     pub fn set(&mut self, name: &str, value: Value) -> Result<(), SetParamError> {
         use Value::{Angle as A, Count as C, Length as L};
-        let sat8 = |n: i64| u8::try_from(n.clamp(0, i64::from(u8::MAX))).unwrap_or(u8::MAX);
-        let sat32 = |n: i64| u32::try_from(n.clamp(0, i64::from(u32::MAX))).unwrap_or(u32::MAX);
+        if let C(n) = value
+            && n < 0
+        {
+            return Err(SetParamError::Negative {
+                step: self.name(),
+                param: name.to_string(),
+                value: n,
+            });
+        }
+        let sat8 = |n: i64| u8::try_from(n).unwrap_or(u8::MAX);
+        let sat32 = |n: i64| u32::try_from(n).unwrap_or(u32::MAX);
         match (self, name, value) {
             (StepKind::Insert(p), "rotation", A(v)) => p.rotation_rad = v,
             (StepKind::Insert(p), "push", L(v)) => p.push_m = v,
@@ -481,7 +491,7 @@ impl StepKind {
             (StepKind::EstimateNeedle(p), "retries", C(v)) => p.retries = sat8(v),
             (StepKind::TrackThread(p), "retries", C(v)) => p.retries = sat8(v),
             (step, name, _) => {
-                return Err(SetParamError {
+                return Err(SetParamError::NoSuchParam {
                     step: step.name(),
                     param: name.to_string(),
                 });
@@ -491,14 +501,27 @@ impl StepKind {
     }
 }
 
-/// A parameter name a step does not have, or a value of the wrong quantity.
+/// Why a parameter cannot be set.
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
-#[error("{step} has no parameter `{param}` of that kind")]
-pub struct SetParamError {
-    /// The step's script name.
-    pub step: &'static str,
-    /// The parameter asked for.
-    pub param: String,
+pub enum SetParamError {
+    /// A parameter name a step does not have, or a value of the wrong quantity.
+    #[error("{step} has no parameter `{param}` of that kind")]
+    NoSuchParam {
+        /// The step's script name.
+        step: &'static str,
+        /// The parameter asked for.
+        param: String,
+    },
+    /// A count below zero.
+    #[error("{step}: `{param}` is a count and cannot be negative, found {value}")]
+    Negative {
+        /// The step's script name.
+        step: &'static str,
+        /// The parameter.
+        param: String,
+        /// The value given.
+        value: i64,
+    },
 }
 
 const LENGTH_MAX_M: f64 = 0.10;
