@@ -14,6 +14,8 @@ use stitch_engine::{
 pub struct ConsoleSupervisor {
     lines: Receiver<String>,
     say: Box<dyn FnMut(&str)>,
+    /// Whether the end of input has been said (once, when first seen).
+    closed_said: bool,
 }
 
 impl std::fmt::Debug for ConsoleSupervisor {
@@ -30,9 +32,24 @@ impl ConsoleSupervisor {
     pub fn stdin() -> Self {
         let (tx, rx) = std::sync::mpsc::channel();
         std::thread::spawn(move || {
-            for line in std::io::stdin().lock().lines().map_while(Result::ok) {
-                if tx.send(line).is_err() {
-                    return;
+            let mut input = std::io::stdin().lock();
+            let mut buf = Vec::new();
+            loop {
+                buf.clear();
+                match input.read_until(b'\n', &mut buf) {
+                    Ok(0) => return,
+                    // A line that is not UTF-8 is read as well as it can be (and then said
+                    // to be unknown), not taken for the end of input.
+                    Ok(_) => {
+                        if tx.send(String::from_utf8_lossy(&buf).into_owned()).is_err() {
+                            return;
+                        }
+                    }
+                    Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                    Err(e) => {
+                        eprintln!("supervisor: cannot read standard input: {e}");
+                        return;
+                    }
                 }
             }
         });
@@ -47,7 +64,11 @@ impl ConsoleSupervisor {
 
     /// A supervisor reading `lines` and speaking through `say` (tests drive it so).
     pub fn new(lines: Receiver<String>, say: Box<dyn FnMut(&str)>) -> Self {
-        Self { lines, say }
+        Self {
+            lines,
+            say,
+            closed_said: false,
+        }
     }
 
     /// A typed line as a command, or `None` (said why) for an empty or unknown one.
@@ -84,7 +105,21 @@ impl Supervisor for ConsoleSupervisor {
                         return Some(c);
                     }
                 }
-                Err(TryRecvError::Empty | TryRecvError::Disconnected) => return None,
+                Err(TryRecvError::Empty) => return None,
+                Err(TryRecvError::Disconnected) => {
+                    // Nobody can type a command from now on: say so at once, not at the
+                    // next wait. The run goes on (Ctrl-C still holds both arms); a wait
+                    // for the surgeon aborts it.
+                    if !self.closed_said {
+                        self.closed_said = true;
+                        (self.say)(
+                            "supervisor: end of input: no command can be typed from now on; \
+                             the run goes on, Ctrl-C holds both arms and ends it, and a \
+                             wait for you aborts it",
+                        );
+                    }
+                    return None;
+                }
             }
         }
     }
@@ -199,6 +234,21 @@ mod tests {
         let said = said.lock().expect("said").join("\n");
         assert!(said.contains("unknown supervisor command `melt`"), "{said}");
         assert!(said.contains("none is pending"), "{said}");
+    }
+
+    #[test]
+    fn the_end_of_input_mid_run_is_said_at_once_and_once() {
+        let (mut s, said) = console(&["pause"], true);
+        assert_eq!(s.poll(0), Some(SupervisorCommand::Pause));
+        assert_eq!(s.poll(1), None);
+        assert_eq!(s.poll(2), None);
+        let said = said.lock().expect("said").clone();
+        let ends = said.iter().filter(|l| l.contains("end of input")).count();
+        assert_eq!(ends, 1, "{said:?}");
+        assert!(
+            said.iter().any(|l| l.contains("Ctrl-C holds both arms")),
+            "{said:?}"
+        );
     }
 
     #[test]
