@@ -20,6 +20,7 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::Arc;
+use stitch_cli::inputs::MockConfig;
 use stitch_engine::{
     ExploreOptions, Loaded, OutcomeSchedule, PlanErrors, PlanLoader, Report, RunOutcome, Runner,
     ScriptLimits, ScriptedSupervisor, explore, mermaid, validate,
@@ -29,7 +30,7 @@ use stitch_primitives::{
 };
 use stitch_recorder::Recorder;
 use stitch_robot::{SimClock, Wound, WoundSpec};
-use stitch_sim::{CameraConfig, SceneConfig, SensingConfig};
+use stitch_sim::{SceneConfig, SensingConfig};
 
 /// Exit codes, documented in `--help` and `docs/cli.md`.
 pub(crate) mod exit {
@@ -176,15 +177,6 @@ enum Command {
         #[command(subcommand)]
         command: perceive::BenchCommand,
     },
-}
-
-/// The mock dVRK's configuration file.
-#[derive(Debug, Default, serde::Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub(crate) struct MockConfig {
-    pub(crate) scene: SceneConfig,
-    pub(crate) sensing: SensingConfig,
-    pub(crate) camera: CameraConfig,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -513,7 +505,7 @@ pub(crate) fn read_mock_config(path: Option<&Path>) -> anyhow::Result<MockConfig
     };
     let text =
         std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
-    toml::from_str::<MockConfig>(&text)
+    stitch_cli::inputs::mock_config(&text)
         .with_context(|| format!("invalid mock configuration {}", path.display()))
 }
 

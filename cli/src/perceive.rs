@@ -3,17 +3,17 @@
 
 use anyhow::Context;
 use clap::{Subcommand, ValueEnum};
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
+use stitch_cli::inputs::{self, CalibrationFile};
 use stitch_eval::own as evaluate;
 use stitch_eval::{Accuracy, FrameResult, failure_kind, percentile};
 use stitch_perception::{
     JawHint, MaskRowMatcher, NeedleEnd, NeedlePipeline, PerceptionError, Rect, SemiGlobalMatcher,
     StereoMatcher,
 };
-use stitch_robot::nalgebra::{Matrix3, Rotation3, Translation3, UnitQuaternion};
 use stitch_robot::{Needle, Pose, RgbImage, StereoCalibration};
 use stitch_sim::{CameraConfig, MockDvrk, SceneConfig, StereoRenderer, Streams};
 
@@ -193,106 +193,16 @@ fn matcher(kind: MatcherKind) -> Box<dyn StereoMatcher> {
     }
 }
 
-/// The calibration file: a rectified pair's shared intrinsics, its baseline, image size, and
-/// the left camera's pose in the robot frame (hand-eye).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct CalibrationFile {
-    /// Focal length along x, pixels.
-    pub fx: f64,
-    /// Focal length along y, pixels.
-    pub fy: f64,
-    /// Principal point, pixels.
-    pub cx: f64,
-    /// Principal point, pixels.
-    pub cy: f64,
-    /// Distance between the cameras' centres, m.
-    pub baseline_m: f64,
-    /// Image width, pixels.
-    pub width: u32,
-    /// Image height, pixels.
-    pub height: u32,
-    /// The left camera frame in the robot frame.
-    pub camera_to_robot: TransformFile,
-}
-
-/// A rigid transform: translation (m) and rotation matrix (rows).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct TransformFile {
-    /// Translation, m.
-    pub translation_m: [f64; 3],
-    /// Rotation matrix, row by row.
-    pub rotation: [[f64; 3]; 3],
-}
-
-impl CalibrationFile {
-    pub fn from_calibration(c: &StereoCalibration) -> Self {
-        let m = c.camera_to_robot.rotation.to_rotation_matrix();
-        let m = m.matrix();
-        let t = c.camera_to_robot.translation.vector;
-        Self {
-            fx: c.fx,
-            fy: c.fy,
-            cx: c.cx,
-            cy: c.cy,
-            baseline_m: c.baseline_m,
-            width: c.width,
-            height: c.height,
-            camera_to_robot: TransformFile {
-                translation_m: [t.x, t.y, t.z],
-                rotation: [0, 1, 2].map(|r| [m[(r, 0)], m[(r, 1)], m[(r, 2)]]),
-            },
-        }
-    }
-
-    pub fn to_calibration(&self) -> anyhow::Result<StereoCalibration> {
-        let r = &self.camera_to_robot.rotation;
-        let m = Matrix3::from_fn(|i, j| r[i][j]);
-        let err = (m.transpose() * m - Matrix3::identity()).norm();
-        if !err.is_finite() || err > 1e-3 || (m.determinant() - 1.0).abs() > 1e-3 {
-            anyhow::bail!(
-                "camera_to_robot.rotation is not a rotation matrix (‖RᵀR − I‖ = {err:.2e}, det = {:.4})",
-                m.determinant()
-            );
-        }
-        let t = self.camera_to_robot.translation_m;
-        let c = StereoCalibration {
-            fx: self.fx,
-            fy: self.fy,
-            cx: self.cx,
-            cy: self.cy,
-            baseline_m: self.baseline_m,
-            width: self.width,
-            height: self.height,
-            camera_to_robot: Pose::from_parts(
-                Translation3::new(t[0], t[1], t[2]),
-                UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(m)),
-            ),
-        };
-        c.validate()?;
-        Ok(c)
-    }
-}
-
 fn read_calibration(path: &Path) -> anyhow::Result<StereoCalibration> {
     let text =
         std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
-    let file: CalibrationFile =
-        toml::from_str(&text).with_context(|| format!("invalid calibration {}", path.display()))?;
-    file.to_calibration()
-        .with_context(|| format!("invalid calibration {}", path.display()))
+    inputs::calibration(&text).with_context(|| format!("invalid calibration {}", path.display()))
 }
 
 fn read_png(path: &Path) -> anyhow::Result<RgbImage> {
-    let img = image::open(path)
-        .with_context(|| format!("cannot read the image {}", path.display()))?
-        .into_rgb8();
-    Ok(RgbImage {
-        width: img.width(),
-        height: img.height(),
-        data: img.into_raw(),
-    })
+    let bytes =
+        std::fs::read(path).with_context(|| format!("cannot read the image {}", path.display()))?;
+    inputs::image(&bytes).with_context(|| format!("cannot read the image {}", path.display()))
 }
 
 fn write_png(path: &Path, img: &RgbImage) -> anyhow::Result<()> {

@@ -9,7 +9,7 @@ pub use msgs::{
     CHANNELS, Channel, CompressedImage, Event, Log, MsgType, NeedleEstimate, Qos, StepEnd,
     Transition, schema_text,
 };
-pub use read::{Recorded, read, recover, rewrite, to_jsonl};
+pub use read::{Recorded, read, read_bytes, recover, rewrite, to_jsonl};
 pub use tap::{FRAME, Tap, Truth};
 pub use write::{MAX_FRAME_QUEUE_BYTES, Recorder, RecorderOptions, RunInfo, Stats};
 

@@ -46,14 +46,19 @@ pub fn read(path: &Path) -> Result<Recorded, RecorderError> {
         path: path.display().to_string(),
         error,
     })?;
-    let complete = LinearReader::new(&buf)
+    read_bytes(path, &buf)
+}
+
+/// [`read`] of a file's bytes, `path` naming it in errors.
+pub fn read_bytes(path: &Path, buf: &[u8]) -> Result<Recorded, RecorderError> {
+    let complete = LinearReader::new(buf)
         .map(|r| r.into_iter().all(|x| x.is_ok()))
         .unwrap_or(false);
     let mut out = Recorded {
         complete,
         ..Recorded::default()
     };
-    let reader = LinearReader::new_with_options(&buf, Options::IgnoreEndMagic.into())
+    let reader = LinearReader::new_with_options(buf, Options::IgnoreEndMagic.into())
         .map_err(|e| bad(path, format!("not an MCAP file: {e}")))?;
     for record in reader {
         // An unfinished file ends in a record cut short: everything before it stands.
