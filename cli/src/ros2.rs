@@ -492,6 +492,7 @@ fn tapped(rig: Rig, tap: Option<stitch_recorder::Tap>, dvrk: &Arc<Ros2Dvrk>) -> 
     };
     let weak = Arc::downgrade(dvrk);
     let mut seen: Vec<(Option<stitch_dvrk::msg::OperatingState>, usize)> = Vec::new();
+    let mut gaps = std::collections::HashSet::new();
     tap.sample_every(SAMPLE_PERIOD, move |tap| {
         // The run is over once the dVRK is dropped.
         let Some(dvrk) = weak.upgrade() else {
@@ -516,22 +517,44 @@ fn tapped(rig: Rig, tap: Option<stitch_recorder::Tap>, dvrk: &Arc<Ros2Dvrk>) -> 
                 );
             }
             *errors = state.errors.len();
+            // A read that fails leaves a gap in the samples, and says why once, when the
+            // gap opens (a stale arm would otherwise fill /rosout at 20 Hz).
+            let mut gap = |what: &str, r: Result<(), stitch_robot::RobotError>| {
+                let key = format!("{}/{what}", state.name);
+                match r {
+                    Ok(()) => {
+                        gaps.remove(&key);
+                    }
+                    Err(e) => {
+                        if gaps.insert(key) {
+                            tap.log(
+                                stitch_recorder::Log::WARN,
+                                &state.name,
+                                &format!("sampling {what}: {e} (no samples until it reads again)"),
+                            );
+                        }
+                    }
+                }
+            };
             if let Some(arm) = dvrk.arm(i) {
-                if let Ok(p) = arm.measured_cp() {
+                let r = arm.measured_cp().map(|p| {
                     tap.pose(&format!("/{}/measured_cp", state.name), &p);
-                }
-                if let Ok(p) = arm.setpoint_cp() {
+                });
+                gap("measured_cp", r);
+                let r = arm.setpoint_cp().map(|p| {
                     tap.pose(&format!("/{}/setpoint_cp", state.name), &p);
-                }
+                });
+                gap("setpoint_cp", r);
             }
             if let Some(jaw) = dvrk.jaw(i) {
-                if let Ok(a) = jaw.measured_jp() {
+                let r = jaw.measured_jp().map(|a| {
                     tap.jaw_angle(
                         &format!("/{}/jaw/measured_js", state.name),
                         &format!("{}_jaw", state.name),
                         a,
                     );
-                }
+                });
+                gap("jaw/measured_js", r);
             }
         }
         true
