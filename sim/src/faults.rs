@@ -40,6 +40,15 @@ pub enum FaultKind {
 const KINDS: usize = 5;
 
 impl FaultKind {
+    /// Every kind, in the order of [`Faults::events`].
+    pub const ALL: [FaultKind; KINDS] = [
+        FaultKind::PerceptionDropout,
+        FaultKind::MissedGrasp,
+        FaultKind::NeedleSlip,
+        FaultKind::StaleMeasurement,
+        FaultKind::ArmFault,
+    ];
+
     fn index(self) -> usize {
         self as usize
     }
@@ -164,6 +173,12 @@ impl Faults {
     /// The configuration.
     pub fn config(&self) -> &FaultConfig {
         &self.config
+    }
+
+    /// How many events of `kind` have happened so far (the `nth` the next one would be,
+    /// less one): what a schedule counts.
+    pub fn events(&self, kind: FaultKind) -> u32 {
+        self.counts[kind.index()]
     }
 
     /// Count one event of `kind` and say whether it faults (scheduled, or drawn). The draw is

@@ -412,6 +412,12 @@ impl MockDvrk {
         &self.clock
     }
 
+    /// How many events of `kind` have happened so far (estimates, closing jaws, carrying
+    /// moves, measurements, motion commands): where a scheduled fault's `nth` counts from.
+    pub fn fault_events(&self, kind: FaultKind) -> u32 {
+        self.lock().faults.events(kind)
+    }
+
     /// An arm handle.
     pub fn arm(&self, side: Side) -> MockArm {
         MockArm {
