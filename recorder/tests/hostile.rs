@@ -86,3 +86,16 @@ fn the_source_recording_reads_whole() {
     assert!(got.complete);
     assert_eq!(got.records.len(), 21);
 }
+
+#[test]
+fn a_chunk_holding_a_chunk_that_overruns_it_is_refused_not_a_panic() {
+    // Found by the `recording` fuzz target (fuzz/README.md), minimised: the mcap crate's
+    // reader panicked (subtract with overflow) on a record inside a chunk, itself a chunk,
+    // claiming more bytes than were left.
+    let bytes = include_bytes!("data/fuzz-chunk-record-overrun.mcap");
+    let path = std::path::Path::new("fuzz-chunk-record-overrun.mcap");
+    let e = stitch_recorder::read_bytes(path, bytes).expect_err("refused");
+    let text = e.to_string();
+    assert!(text.contains("inside a chunk"), "{text}");
+    assert!(text.contains("fuzz-chunk-record-overrun.mcap"), "{text}");
+}
