@@ -8,7 +8,9 @@ mod support;
 
 use std::path::Path;
 use std::time::{Duration, Instant};
-use support::{Ran, SimNode, hand_eye_config, real_args, run, run_typed, serial, tmp};
+use support::{
+    Ran, SimNode, hand_eye_config, open_files, proc_status, real_args, run, run_typed, serial, tmp,
+};
 
 /// A domain of this test's own: away from 0, from other test processes, and from the other
 /// tests in this one (`k` is the test's number).
@@ -95,6 +97,107 @@ fn missions_over_ros2_match_the_in_process_mock_seed_for_seed() {
     assert!(log.contains("state_command enable"), "{log}");
     assert!(log.contains("state_command home"), "{log}");
     assert!(log.contains("trajectory speed ratio 0.2"), "{log}");
+}
+
+/// The median of `v`.
+fn median(mut v: Vec<u64>) -> u64 {
+    v.sort_unstable();
+    v.get(v.len() / 2).copied().unwrap_or(0)
+}
+
+/// Missions back to back against one sim-node, each with its in-process twin:
+/// `STITCH_SOAK` of them (20 by default; 500 for the issue's soak). None may stall (each has
+/// its deadline), diverge from its twin or leave the sim-node growing: its resident memory
+/// after the warm-up (the first tenth, at least 5 missions) may grow at most 10 %, its
+/// threads and open files (DDS discovery and teardown of each client) not at all beyond a
+/// slack of 2. Each client's peak memory likewise.
+#[test]
+fn soak_missions_back_to_back_stay_twins_and_leave_nothing_behind() {
+    let _one = serial();
+    let n: u64 = std::env::var("STITCH_SOAK")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(20);
+    let d = domain(15);
+    let node = SimNode::start(&d, &[]);
+    let pid = node.pid();
+    let (mut rss, mut threads, mut files, mut clients, mut wall) =
+        (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    for i in 0..n {
+        let seed = (i + 1).to_string();
+        let plan = if i % 3 == 2 {
+            "scripts/stitch_human.rhai"
+        } else {
+            "scripts/stitch.rhai"
+        };
+        let (a, b) = (tmp("soak-mock.jsonl"), tmp("soak-ros2.jsonl"));
+        let mock = run(&[plan, "--seed", &seed], &a, Duration::from_secs(60));
+        let t0 = Instant::now();
+        let wire = run(
+            &[plan, "--seed", &seed, "--robot", "ros2", "--domain-id", &d],
+            &b,
+            Duration::from_secs(120),
+        );
+        wall.push(t0.elapsed().as_millis() as u64);
+        assert_eq!(
+            wire.code,
+            mock.code,
+            "mission {i} ({plan}, seed {seed}): {}\nsim-node:\n{}",
+            wire.out,
+            node.log()
+        );
+        assert_eq!(
+            untimed(&wire.journal),
+            untimed(&mock.journal),
+            "mission {i} ({plan}, seed {seed}): the journals differ"
+        );
+        rss.push(proc_status(pid, "VmRSS").expect("the sim-node's memory"));
+        threads.push(proc_status(pid, "Threads").expect("the sim-node's threads"));
+        files.push(open_files(pid).expect("the sim-node's open files") as u64);
+        clients.push(wire.peak_rss_kb.expect("the client's peak memory"));
+    }
+    let warm = (n as usize / 10).max(5).min(rss.len().saturating_sub(1));
+    let tail = rss.len().saturating_sub(5).max(warm);
+    let summary = format!(
+        "soak: {n} missions over ROS 2, 0 stalls, 0 twin divergences; mission wall time \
+         median {} ms, max {} ms; sim-node RSS after warm-up {} kB, at the end {} kB (max \
+         {} kB); threads {} -> {}; open files {} -> {}; client peak RSS median {} kB \
+         (first {} kB, last {} kB)",
+        median(wall.clone()),
+        wall.iter().max().copied().unwrap_or(0),
+        median(rss[warm..(warm + 5).min(rss.len())].to_vec()),
+        median(rss[tail..].to_vec()),
+        rss.iter().max().copied().unwrap_or(0),
+        threads[warm],
+        threads.last().copied().unwrap_or(0),
+        files[warm],
+        files.last().copied().unwrap_or(0),
+        median(clients.clone()),
+        clients.first().copied().unwrap_or(0),
+        clients.last().copied().unwrap_or(0),
+    );
+    eprintln!("{summary}");
+    let (start, end) = (
+        median(rss[warm..(warm + 5).min(rss.len())].to_vec()),
+        median(rss[tail..].to_vec()),
+    );
+    assert!(
+        end * 10 <= start * 11,
+        "the sim-node's memory grew: {summary}"
+    );
+    assert!(
+        threads.last().copied().unwrap_or(0) <= threads[warm] + 2,
+        "the sim-node's threads grew: {summary}"
+    );
+    assert!(
+        files.last().copied().unwrap_or(0) <= files[warm] + 2,
+        "the sim-node's open files grew: {summary}"
+    );
+    let (c0, c1) = (
+        median(clients[warm..(warm + 5).min(clients.len())].to_vec()),
+        median(clients[tail..].to_vec()),
+    );
+    assert!(c1 * 10 <= c0 * 11, "the clients' memory grew: {summary}");
 }
 
 #[test]

@@ -64,6 +64,11 @@ impl SimNode {
         self.log.lock().expect("log").clone()
     }
 
+    /// Its process id (for its memory, threads and open files in `/proc`).
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
     pub fn wait_for(&self, text: &str, timeout: Duration) {
         let deadline = Instant::now() + timeout;
         while !self.log().contains(text) {
@@ -93,6 +98,25 @@ pub struct Ran {
     pub code: Option<i32>,
     pub out: String,
     pub journal: String,
+    /// Its peak resident memory, kB, as last read from `/proc` while it ran (Linux).
+    pub peak_rss_kb: Option<u64>,
+}
+
+/// A `/proc/<pid>/status` field in kB (`VmRSS`, `VmHWM`) or a count (`Threads`).
+pub fn proc_status(pid: u32, field: &str) -> Option<u64> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix(field)?.strip_prefix(':'))?
+        .split_whitespace()
+        .next()?
+        .parse()
+        .ok()
+}
+
+/// How many files a process has open.
+pub fn open_files(pid: u32) -> Option<usize> {
+    Some(std::fs::read_dir(format!("/proc/{pid}/fd")).ok()?.count())
 }
 
 /// `stitch run`, killed (and the test failed) past `timeout`; nothing on its standard input.
@@ -123,7 +147,9 @@ pub fn run_typed(args: &[&str], journal: &Path, timeout: Duration, typed: &str) 
         let _ = stdin.write_all(typed.as_bytes());
     }
     let deadline = Instant::now() + timeout;
+    let mut peak_rss_kb = None;
     let status = loop {
+        peak_rss_kb = proc_status(child.id(), "VmHWM").or(peak_rss_kb);
         if let Some(s) = child.try_wait().expect("wait") {
             break s;
         }
@@ -144,6 +170,7 @@ pub fn run_typed(args: &[&str], journal: &Path, timeout: Duration, typed: &str) 
             std::fs::read_to_string(&err_path).unwrap_or_default()
         ),
         journal: std::fs::read_to_string(journal).unwrap_or_default(),
+        peak_rss_kb,
     }
 }
 
