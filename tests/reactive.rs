@@ -178,7 +178,7 @@ fn repeating(params: &str) -> String {
 
 fn scripted(plan: &Plan, conditions: Vec<bool>, checkpoints: Vec<SupervisorCommand>) -> Report {
     let schedule = OutcomeSchedule {
-        conditions,
+        conditions: conditions.into_iter().map(Some).collect(),
         checkpoints,
         ..OutcomeSchedule::default()
     };
@@ -367,4 +367,73 @@ fn an_abort_at_a_checkpoint_ends_the_run_safely_with_nothing_moved() {
     );
     assert!(matches!(report.outcome, RunOutcome::Aborted { .. }));
     assert!(attempted(&report).is_empty());
+}
+
+#[test]
+fn a_condition_the_robot_could_not_observe_is_not_decided_and_fails_in_the_needles_phase() {
+    // The first `measured_cp` of the run is the condition's query of the right arm: stale.
+    // Read as a missing jaw, `needle_confidence() >= 0.8` would be false, `not(..)` true, and
+    // the plan would go on deciding on nothing; it must stop instead, the arms held.
+    let plan = load(
+        "let t = suture(wound()[0], [\n\
+           repeat(#{ max: 3, stop_when: needle_confidence() >= 0.8 }, [estimate_needle()]),\n\
+           insert(), sweep(), extract(), cinch(), handover(),\n\
+         ]);\n\
+         mission(#{ name: \"unobserved\", interventions: 0, throws: [t] })",
+    );
+    let mut scene = scene();
+    scene.faults.schedule.push(stitch_sim::ScheduledFault {
+        kind: stitch_sim::FaultKind::StaleMeasurement,
+        nth: 1,
+    });
+    let clock = SimClock::new();
+    let (mut primitives, _world) =
+        mock_primitives(&scene, SensingConfig::perfect(), 1, clock.clone()).expect("mock");
+    let mut supervisor = ScriptedSupervisor::default();
+    let report = Runner::new(
+        Arc::new(plan),
+        &mut primitives,
+        &mut supervisor,
+        Arc::new(clock),
+        Some(1),
+    )
+    .run();
+    let records = report.journal.records();
+    let at = records
+        .iter()
+        .position(|r| matches!(&r.entry, Entry::Unobserved { observation, .. } if !observation.faults.is_empty()))
+        .unwrap_or_else(|| panic!("no unobserved condition journaled: {records:#?}"));
+    assert!(
+        !records
+            .iter()
+            .any(|r| matches!(r.entry, Entry::Condition { .. })),
+        "nothing was decided"
+    );
+    assert!(
+        !records[at..]
+            .iter()
+            .any(|r| matches!(r.entry, Entry::StepStart { .. })),
+        "no step ran after it"
+    );
+    assert!(
+        records[at..]
+            .iter()
+            .any(|r| matches!(r.entry, Entry::Hold { .. })),
+        "the arms were held"
+    );
+    match &report.outcome {
+        RunOutcome::Failed { class, reason, .. } => {
+            assert_eq!(
+                class.code(),
+                'I',
+                "the needle is in the right jaw: insertion"
+            );
+            let Some(stitch_primitives::FailureKind::ArmFault { message }) = reason else {
+                panic!("{reason:?}");
+            };
+            assert!(message.contains("not decided"), "{message}");
+            assert!(message.contains("measurement is"), "{message}");
+        }
+        other => panic!("{other:?}"),
+    }
 }

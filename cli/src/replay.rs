@@ -418,7 +418,8 @@ struct RecordedOutcomes {
     clock: SimClock,
     attempts: usize,
     ran_out: std::rc::Rc<std::cell::RefCell<RanOut>>,
-    conditions: std::collections::VecDeque<bool>,
+    /// Each condition's value, `None` where the robot could not observe it.
+    conditions: std::collections::VecDeque<Option<bool>>,
 }
 
 impl Primitives for RecordedOutcomes {
@@ -455,8 +456,12 @@ impl Primitives for RecordedOutcomes {
     /// other conditions decides its own in that order); past them, the replay stops.
     fn observe(&mut self, req: &ObserveRequest<'_>) -> Observation {
         match self.conditions.pop_front() {
-            Some(v) => Observation {
+            Some(Some(v)) => Observation {
                 scripted: Some(v),
+                ..Observation::default()
+            },
+            Some(None) => Observation {
+                faults: vec!["the recording could not observe this condition".into()],
                 ..Observation::default()
             },
             None => {
@@ -582,7 +587,8 @@ fn what_if(rec: &Recording, other: &Path) -> anyhow::Result<u8> {
     let (mut started, mut started_at) = (0usize, 0.0);
     for r in records {
         match &r.entry {
-            Entry::Condition { value, .. } => conditions.push_back(*value),
+            Entry::Condition { value, .. } => conditions.push_back(Some(*value)),
+            Entry::Unobserved { .. } => conditions.push_back(None),
             Entry::Checkpoint { .. } => at_checkpoint = true,
             // The answer to a checkpoint is the next command.
             Entry::Supervisor { command, .. } if at_checkpoint => {

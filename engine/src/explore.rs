@@ -23,7 +23,9 @@ use std::fmt;
 use std::hash::{Hash, Hasher};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
-use stitch_primitives::{SCRIPTED_TOKENS, Scripted, StepKind};
+use stitch_primitives::{
+    Failure, FailureKind, Measurements, SCRIPTED_TOKENS, Scripted, StepKind, StepOutcome,
+};
 
 /// Where the needle is, in the model's abstract world.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -180,6 +182,8 @@ pub enum Action {
     SupervisorGone,
     /// The plan's condition has this value.
     Decide(bool),
+    /// The robot cannot observe what the plan's condition reads (an arm or camera fault).
+    Unobservable,
     /// The supervisor answers a checkpoint.
     Checkpoint(SupervisorCommand),
 }
@@ -193,6 +197,7 @@ impl fmt::Display for Action {
             Action::Intervention(InterventionResult::Failed) => f.write_str("intervention failed"),
             Action::SupervisorGone => f.write_str("supervisor gone"),
             Action::Decide(v) => write!(f, "condition {v}"),
+            Action::Unobservable => f.write_str("condition unobservable"),
             Action::Checkpoint(c) => write!(f, "checkpoint: {c}"),
         }
     }
@@ -393,7 +398,11 @@ impl Model for EngineModel {
                 };
                 match known {
                     Some(v) => actions.push(Action::Decide(v)),
-                    None => actions.extend([Action::Decide(true), Action::Decide(false)]),
+                    None => actions.extend([
+                        Action::Decide(true),
+                        Action::Decide(false),
+                        Action::Unobservable,
+                    ]),
                 }
             }
             Pending::Checkpoint(_) => {
@@ -463,6 +472,21 @@ impl Model for EngineModel {
                     s.world.violate(Violation::MotionAfterStop);
                 }
                 Self::dispatch(&mut s.machine, Event::Decided(v));
+            }
+            (Pending::Decide(_), Action::Unobservable) => {
+                if s.world.stopped {
+                    s.world.violate(Violation::MotionAfterStop);
+                }
+                let failure = Failure {
+                    kind: FailureKind::ArmFault {
+                        message: "unobservable".into(),
+                    },
+                    measured: Measurements::default(),
+                };
+                Self::dispatch(
+                    &mut s.machine,
+                    Event::StepFinished(StepOutcome::Failed(failure)),
+                );
             }
             (Pending::Attempt(_) | Pending::Command(_), Action::Command(command))
             | (Pending::Checkpoint(_), Action::Checkpoint(command)) => {
@@ -861,7 +885,8 @@ pub fn schedule_of(actions: impl IntoIterator<Item = Action>) -> OutcomeSchedule
                 });
             }
             Action::Intervention(r) => schedule.interventions.push(r),
-            Action::Decide(v) => schedule.conditions.push(v),
+            Action::Decide(v) => schedule.conditions.push(Some(v)),
+            Action::Unobservable => schedule.conditions.push(None),
             Action::Checkpoint(c) => schedule.checkpoints.push(c),
             Action::SupervisorGone => {}
         }

@@ -161,6 +161,23 @@ pub enum Entry {
         /// What the engine knew.
         mission: MissionFacts,
     },
+    /// A condition the robot could not observe (an arm that could not say where it is, a
+    /// failing camera: the observation's `faults`): not decided; the machine handles it as a
+    /// failure in the phase the needle is in.
+    Unobserved {
+        /// Throw index, 0-based.
+        throw: usize,
+        /// Program index, 0-based.
+        step: usize,
+        /// The condition, as the script writes it.
+        condition: String,
+        /// The construct: `when`, or `until` before run N of a repeat.
+        role: BranchRole,
+        /// What the robot observed, and what it could not.
+        observation: Observation,
+        /// What the engine knew.
+        mission: MissionFacts,
+    },
     /// The plan reached a checkpoint; the arms hold until the surgeon says go.
     Checkpoint {
         /// Throw index, 0-based.

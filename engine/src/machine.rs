@@ -211,7 +211,20 @@ impl Mission {
     }
 
     /// Where a decided condition at `c` leads.
-    fn on_decided(&mut self, c: Cursor, event: &Event) -> Outcome<State> {
+    fn on_decided(&mut self, c: Cursor, ctx: &mut Ctx, event: &Event) -> Outcome<State> {
+        // The robot could not make the observation the condition needs (an arm that cannot
+        // say where it is, a failing camera): the condition is not decided on what is
+        // missing. No retry: the surgeon is asked while the budget lasts, else the throw
+        // fails in the phase the needle is in.
+        if let Event::StepFinished(StepOutcome::Failed(failure)) = event {
+            self.last_failure = Some(failure.clone());
+            let class = if failure.kind.is_thread() {
+                FailureClass::Thread
+            } else {
+                self.plan.needle_phase_class(c.throw, c.step)
+            };
+            return self.escalate(c, class, ctx);
+        }
         let Event::Decided(value) = event else {
             return Super;
         };
@@ -284,6 +297,11 @@ impl Mission {
             });
             return Transition(self.step_state(Cursor { retries, ..c }));
         }
+        self.escalate(c, class, ctx)
+    }
+
+    /// A failure no retry covers: ask the surgeon while the budget lasts, else fail.
+    fn escalate(&mut self, c: Cursor, class: FailureClass, ctx: &mut Ctx) -> Outcome<State> {
         let budget = self.intervention_budget();
         if self.counters.interventions_used < budget {
             self.counters.interventions_used += 1;
@@ -459,8 +477,13 @@ impl Mission {
     /// A plan's condition (a `when`, a `repeat`'s `until`): the runner observes, decides, and
     /// the machine goes where the value leads.
     #[state(superstate = "throw")]
-    fn deciding(&mut self, cursor: &mut Cursor, event: &Event) -> Outcome<State> {
-        self.on_decided(*cursor, event)
+    fn deciding(
+        &mut self,
+        cursor: &mut Cursor,
+        context: &mut Ctx,
+        event: &Event,
+    ) -> Outcome<State> {
+        self.on_decided(*cursor, context, event)
     }
 
     /// A surgeon checkpoint: the arms hold until the supervisor says go.

@@ -495,17 +495,22 @@ impl Plan {
             StepKind::Sweep(_) | StepKind::Cinch(_) | StepKind::TrackThread(_) => {
                 FailureClass::Thread
             }
-            StepKind::EstimateNeedle(_) => {
-                let holder = self
-                    .holders()
-                    .get(throw)
-                    .and_then(|t| t.get(step).copied().flatten());
-                match holder {
-                    Some(NeedleHolder::Tissue) => FailureClass::Extraction,
-                    Some(NeedleHolder::Left) => FailureClass::Handover,
-                    _ => FailureClass::Insertion,
-                }
-            }
+            StepKind::EstimateNeedle(_) => self.needle_phase_class(throw, step),
+        }
+    }
+
+    /// The class of the phase the needle is in before program index `step` of throw
+    /// `throw`: in the tissue → E, in the left jaw → H, else I (a needle query's class, and a
+    /// condition's that could not be observed).
+    pub fn needle_phase_class(&self, throw: usize, step: usize) -> FailureClass {
+        let holder = self
+            .holders()
+            .get(throw)
+            .and_then(|t| t.get(step).copied().flatten());
+        match holder {
+            Some(NeedleHolder::Tissue) => FailureClass::Extraction,
+            Some(NeedleHolder::Left) => FailureClass::Handover,
+            _ => FailureClass::Insertion,
         }
     }
 

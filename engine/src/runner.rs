@@ -12,7 +12,10 @@ use crate::supervisor::{CheckpointRequest, InterventionRequest, InterventionResu
 use serde::Serialize;
 use statig::blocking::{InitializedStateMachine, IntoStateMachineExt};
 use std::sync::Arc;
-use stitch_primitives::{NeedleAt, ObserveRequest, Primitives, StepOutcome, StepRequest};
+use stitch_primitives::{
+    Failure, FailureKind, Measurements, NeedleAt, ObserveRequest, Primitives, StepOutcome,
+    StepRequest,
+};
 use stitch_robot::Clock;
 
 /// One step attempt as the runner saw it, for timelines.
@@ -282,6 +285,32 @@ impl<'a> Runner<'a> {
         });
         let now = self.clock.now();
         let mission = self.machine.inner().facts(c);
+        if observation.scripted.is_none()
+            && !observation.faults.is_empty()
+            && cond.eval_known(&mission).is_none()
+        {
+            // Not decided on what the robot could not observe: journaled with what it did
+            // observe, then a failure in the needle's phase (the surgeon asked, or the end).
+            let message = format!(
+                "condition `{cond}` not decided: the robot could not observe it ({})",
+                observation.faults.join("; ")
+            );
+            self.ctx.journal.set_now(now);
+            self.ctx.journal.push(Entry::Unobserved {
+                throw: c.throw,
+                step: c.step,
+                condition: cond.to_string(),
+                role: *role,
+                observation,
+                mission,
+            });
+            self.dispatch(Event::StepFinished(StepOutcome::Failed(Failure {
+                kind: FailureKind::ArmFault { message },
+                measured: Measurements::default(),
+            })));
+            self.note_throw_left(c.throw);
+            return;
+        }
         let value = observation.scripted.unwrap_or_else(|| {
             cond.eval(&Facts {
                 observation: &observation,
@@ -335,14 +364,12 @@ impl<'a> Runner<'a> {
         let Some(step) = throw.step(c.step) else {
             // The machine attempts only steps: an operation that is not one is an engine bug
             // surfacing; fail it safely rather than move.
-            self.dispatch(Event::StepFinished(StepOutcome::Failed(
-                stitch_primitives::Failure {
-                    kind: stitch_primitives::FailureKind::ArmFault {
-                        message: "engine: no step at this point of the plan".into(),
-                    },
-                    measured: stitch_primitives::Measurements::default(),
+            self.dispatch(Event::StepFinished(StepOutcome::Failed(Failure {
+                kind: FailureKind::ArmFault {
+                    message: "engine: no step at this point of the plan".into(),
                 },
-            )));
+                measured: Measurements::default(),
+            })));
             return;
         };
         let summary = &mut self.throws[c.throw];
@@ -638,6 +665,10 @@ impl Rebuilt {
                             c.answer = Some(*command);
                         }
                     }
+                }
+                Entry::Unobserved { throw: t, .. } => {
+                    let t = throw(*t, &mut out)?;
+                    reached = reached.max(Some(t));
                 }
                 Entry::Transition { .. } | Entry::Hold { .. } => {}
             }

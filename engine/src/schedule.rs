@@ -14,7 +14,8 @@
 //!
 //! Every key is optional. Attempts past the end of `outcomes` succeed; interventions past the
 //! end of `interventions` recover; the plan's conditions take the values of `conditions` in
-//! the order they are decided, `true` past its end; checkpoints are answered as `checkpoints`
+//! the order they are decided (`null`: the robot cannot observe it), `true` past its end;
+//! checkpoints are answered as `checkpoints`
 //! says, `go` past its end.
 
 use crate::supervisor::{InterventionResult, ScriptedSupervisor, SupervisorCommand, TimedCommand};
@@ -36,9 +37,10 @@ pub struct OutcomeSchedule {
     /// How each requested intervention ends, in order.
     #[serde(default)]
     pub interventions: Vec<InterventionResult>,
-    /// The value of each condition the plan decides, in order.
+    /// The value of each condition the plan decides, in order; `null` for one the robot
+    /// cannot observe (the engine then treats it as a failure in the needle's phase).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
-    pub conditions: Vec<bool>,
+    pub conditions: Vec<Option<bool>>,
     /// The supervisor's answer at each checkpoint, in order.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub checkpoints: Vec<SupervisorCommand>,

@@ -234,8 +234,9 @@ pub struct ScriptedPrimitives {
     pub calls: Vec<Call>,
     /// For each `hold_all`, how many `run` calls had been made before it.
     pub holds: Vec<usize>,
-    /// Values of the plan's conditions, in order (a schedule's; `true` once exhausted).
-    conditions: VecDeque<bool>,
+    /// Values of the plan's conditions, in order (a schedule's; `true` once exhausted;
+    /// `None` for one the robot cannot observe).
+    conditions: VecDeque<Option<bool>>,
     /// Every condition value given, in order.
     pub decided: Vec<bool>,
 }
@@ -254,10 +255,13 @@ impl ScriptedPrimitives {
         }
     }
 
-    /// The plan's conditions take these values, in order (`true` once they run out); only
-    /// for schedules (a seeded source draws them).
-    pub fn with_conditions(mut self, values: impl IntoIterator<Item = bool>) -> Self {
-        self.conditions = values.into_iter().collect();
+    /// The plan's conditions take these values, in order (`true` once they run out; `None`:
+    /// the robot cannot observe it); only for schedules (a seeded source draws them).
+    pub fn with_conditions(
+        mut self,
+        values: impl IntoIterator<Item = impl Into<Option<bool>>>,
+    ) -> Self {
+        self.conditions = values.into_iter().map(Into::into).collect();
         self
     }
 
@@ -341,8 +345,15 @@ impl Primitives for ScriptedPrimitives {
             self.clock.sleep(Duration::from_secs_f64(cycle));
         }
         let value = match &mut self.source {
-            Source::Schedule(_) => self.conditions.pop_front().unwrap_or(true),
-            Source::Seeded(seeded) => seeded.conditions.random::<bool>(),
+            Source::Schedule(_) => self.conditions.pop_front().unwrap_or(Some(true)),
+            Source::Seeded(seeded) => Some(seeded.conditions.random::<bool>()),
+        };
+        let Some(value) = value else {
+            // The schedule says the robot cannot observe this one.
+            return Observation {
+                faults: vec!["scripted: the condition cannot be observed".into()],
+                ..Observation::default()
+            };
         };
         self.decided.push(value);
         Observation {
