@@ -391,12 +391,19 @@ fn hold_on_interrupt(dvrk: &Arc<Ros2Dvrk>) {
     let weak = Arc::downgrade(dvrk);
     let set = ctrlc::set_handler(move || {
         if let Some(d) = weak.upgrade() {
-            d.hold_all();
+            let failed = d.hold_all();
             std::thread::sleep(stitch_dvrk::ros2::HOLD_LINGER);
-            eprintln!(
-                "interrupted: hold sent to both arms; the run ends (no JSON Lines journal; an \
-                 MCAP journal holds the run to its last closed chunk)"
-            );
+            if failed.is_empty() {
+                eprintln!(
+                    "interrupted: hold sent to both arms; the run ends (no JSON Lines journal; \
+                     an MCAP journal holds the run to its last closed chunk)"
+                );
+            } else {
+                eprintln!(
+                    "interrupted: HOLD FAILED: {}; use the dVRK console's e-stop; the run ends",
+                    failed.join("; ")
+                );
+            }
         }
         std::process::exit(i32::from(crate::exit::MISSION_ABORTED));
     });

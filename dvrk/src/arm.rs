@@ -656,11 +656,13 @@ impl Ros2Dvrk {
             .collect()
     }
 
-    /// Send `hold` to every arm (an interrupted run; errors ignored: nothing else to do).
-    pub fn hold_all(&self) {
-        for l in &self.links {
-            let _ = l.hold();
-        }
+    /// Send `hold` to every arm (an interrupted run): each is told whatever another
+    /// answered; what failed, by arm (nothing else can be done about it but say it).
+    pub fn hold_all(&self) -> Vec<String> {
+        self.links
+            .iter()
+            .filter_map(|l| l.hold().err().map(|e| e.to_string()))
+            .collect()
     }
 
     /// The arm `i` of the configuration's list (0: the right needle driver).

@@ -790,11 +790,18 @@ impl Primitives for RobotPrimitives {
     }
 
     fn hold_all(&mut self) -> Result<(), PrimitiveError> {
-        let r = self.rig.right.hold();
-        let l = self.rig.left.hold();
-        r.and(l).map_err(|e| PrimitiveError::Robot {
-            message: e.to_string(),
-        })
+        // Both are told to hold whatever the other answered; every refusal is said.
+        let failed: Vec<String> = [self.rig.right.hold(), self.rig.left.hold()]
+            .into_iter()
+            .filter_map(|r| r.err().map(|e| e.to_string()))
+            .collect();
+        if failed.is_empty() {
+            Ok(())
+        } else {
+            Err(PrimitiveError::Robot {
+                message: failed.join("; "),
+            })
+        }
     }
 }
 

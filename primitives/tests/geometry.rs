@@ -385,3 +385,42 @@ fn an_arm_that_cannot_say_where_its_jaw_is_stops_the_step_as_an_arm_fault_not_a_
     // It went to the corner and no further: nothing moved after the failed read.
     assert_eq!(moves(&inner).len(), 1);
 }
+
+/// An arm that refuses to hold.
+struct NoHold(DummyArm);
+impl stitch_robot::Arm for NoHold {
+    fn name(&self) -> &str {
+        self.0.name()
+    }
+    fn measured_cp(&self) -> Result<Pose, stitch_robot::RobotError> {
+        self.0.measured_cp()
+    }
+    fn setpoint_cp(&self) -> Result<Pose, stitch_robot::RobotError> {
+        self.0.setpoint_cp()
+    }
+    fn move_cp(&self, goal: &Pose) -> Result<stitch_robot::MoveHandle, stitch_robot::RobotError> {
+        self.0.move_cp(goal)
+    }
+    fn servo_cp(&self, goal: &Pose) -> Result<(), stitch_robot::RobotError> {
+        self.0.servo_cp(goal)
+    }
+    fn hold(&self) -> Result<(), stitch_robot::RobotError> {
+        Err(stitch_robot::RobotError::Fault {
+            arm: self.0.name().into(),
+            message: "hold refused".into(),
+        })
+    }
+}
+
+#[test]
+fn a_hold_both_arms_refuse_says_both() {
+    let estimator = Box::new(Fixed(at(0.0, 0.0, -0.1)));
+    let mut p = rig(
+        Arc::new(NoHold(DummyArm::new("PSM1"))),
+        Arc::new(NoHold(DummyArm::new("PSM2"))),
+        estimator,
+    );
+    let e = p.hold_all().expect_err("refused").to_string();
+    assert!(e.contains("PSM1: fault: hold refused"), "{e}");
+    assert!(e.contains("PSM2: fault: hold refused"), "{e}");
+}
