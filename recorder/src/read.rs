@@ -51,6 +51,28 @@ pub fn read(path: &Path) -> Result<Recorded, RecorderError> {
 
 /// [`read`] of a file's bytes, `path` naming it in errors.
 pub fn read_bytes(path: &Path, buf: &[u8]) -> Result<Recorded, RecorderError> {
+    // The `mcap` crate's reader (0.26) panics on some malformed records instead of saying
+    // so (a slice out of bounds in an attachment shorter than its own header, a subtraction
+    // that overflows in a nested chunk: both found by the `recording` fuzz target, both
+    // regression tests in tests/hostile.rs). A file a crash or a disk mangled must get a
+    // clear error, never take the program down: a panic inside the reader is caught and said.
+    // Written by hand because no other maintained Rust MCAP reader exists.
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| parse(path, buf))).unwrap_or_else(
+        |panic| {
+            let what = panic
+                .downcast_ref::<String>()
+                .cloned()
+                .or_else(|| panic.downcast_ref::<&str>().map(|s| (*s).to_string()))
+                .unwrap_or_default();
+            Err(bad(
+                path,
+                format!("a malformed record (the MCAP reader failed on it: {what})"),
+            ))
+        },
+    )
+}
+
+fn parse(path: &Path, buf: &[u8]) -> Result<Recorded, RecorderError> {
     let complete = LinearReader::new(buf)
         .map(|r| r.into_iter().all(|x| x.is_ok()))
         .unwrap_or(false);

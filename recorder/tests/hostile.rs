@@ -99,3 +99,15 @@ fn a_chunk_holding_a_chunk_that_overruns_it_is_refused_not_a_panic() {
     assert!(text.contains("inside a chunk"), "{text}");
     assert!(text.contains("fuzz-chunk-record-overrun.mcap"), "{text}");
 }
+
+#[test]
+fn an_attachment_shorter_than_its_own_header_is_refused_not_a_panic() {
+    // Found by the `recording` fuzz target, minimised: the mcap crate's reader panicked
+    // (slice index out of range) on it; the recorder catches that and says what it is.
+    let bytes = include_bytes!("data/fuzz-attachment-shorter-than-header.mcap");
+    let path = std::path::Path::new("fuzz-attachment.mcap");
+    let e = stitch_recorder::read_bytes(path, bytes).expect_err("refused");
+    let text = e.to_string();
+    assert!(text.contains("a malformed record"), "{text}");
+    assert!(text.contains("fuzz-attachment.mcap"), "{text}");
+}
