@@ -172,12 +172,17 @@ impl Observer for RemoteObserver {
                 protrusion_m: p.protrusion_m,
                 passed: p.passed,
             },
-            _ => PassObservation {
-                entry_error_m: None,
-                exit_error_m: None,
-                protrusion_m: 0.0,
-                passed: false,
-            },
+            other => {
+                if let Some(a) = other {
+                    self.lost = Some(format!("end of pass: unexpected answer {a:?}"));
+                }
+                PassObservation {
+                    entry_error_m: None,
+                    exit_error_m: None,
+                    protrusion_m: 0.0,
+                    passed: false,
+                }
+            }
         }
     }
 
@@ -187,15 +192,27 @@ impl Observer for RemoteObserver {
         }
         match self.ask(Call::Problem) {
             Some(Answer::Problem(p)) => p,
-            _ => self
+            Some(other) => Some(FailureKind::ArmFault {
+                message: format!("problem: unexpected answer {other:?}"),
+            }),
+            None => self
                 .lost
                 .take()
                 .map(|message| FailureKind::ArmFault { message }),
         }
     }
 
+    /// An unanswered question counts as "still in" (the safe side: the extraction is not
+    /// taken as done), and `problem` then reports the side channel's failure.
     fn needle_in_tissue(&mut self) -> bool {
-        matches!(self.ask(Call::NeedleInTissue), Some(Answer::Bool(true)))
+        match self.ask(Call::NeedleInTissue) {
+            Some(Answer::Bool(b)) => b,
+            Some(other) => {
+                self.lost = Some(format!("needle in tissue: unexpected answer {other:?}"));
+                true
+            }
+            None => true,
+        }
     }
 
     fn cinched(&mut self, beta_m: f64) {
@@ -205,7 +222,11 @@ impl Observer for RemoteObserver {
     fn thread_left_m(&mut self) -> f64 {
         match self.ask(Call::ThreadLeft) {
             Some(Answer::Meters(m)) => m,
-            _ => 0.0,
+            Some(other) => {
+                self.lost = Some(format!("thread left: unexpected answer {other:?}"));
+                f64::NAN
+            }
+            None => f64::NAN,
         }
     }
 }

@@ -53,7 +53,8 @@ pub trait Observer: Send {
     fn needle_in_tissue(&mut self) -> bool;
     /// A cinch left `beta_m` of free thread.
     fn cinched(&mut self, beta_m: f64);
-    /// Thread not yet used in sutures nor pulled free, m.
+    /// Thread not yet used in sutures nor pulled free, m (NaN where it cannot tell: then it is
+    /// not measured, and the observer says why as a problem).
     fn thread_left_m(&mut self) -> f64;
 }
 
@@ -396,7 +397,7 @@ impl RobotPrimitives {
             let pass = o.end_pass(point);
             measured.entry_error_m = pass.entry_error_m;
             measured.exit_error_m = pass.exit_error_m;
-            measured.thread_left_m = Some(o.thread_left_m());
+            measured.thread_left_m = Some(o.thread_left_m()).filter(|m| m.is_finite());
             if let Some(kind) = o.problem() {
                 return Err(Box::new(Failure { kind, measured }));
             }
@@ -503,12 +504,13 @@ impl RobotPrimitives {
             endpoint_travel_m: Some(travel),
             ..Measurements::default()
         };
-        let problem = self.problem();
+        // Asked before the problems: an observer that cannot answer says so as a problem.
         let still_in = self
             .rig
             .observer
             .as_mut()
             .is_some_and(|o| o.needle_in_tissue());
+        let problem = self.problem();
         if let Some(kind) = problem {
             return Err(Box::new(Failure { kind, measured }));
         }
@@ -540,7 +542,7 @@ impl RobotPrimitives {
         };
         if let Some(o) = self.rig.observer.as_mut() {
             o.cinched(beta);
-            measured.thread_left_m = Some(o.thread_left_m());
+            measured.thread_left_m = Some(o.thread_left_m()).filter(|m| m.is_finite());
         }
         let present = pose(self.rig.layout.handover_point, tool.rotation);
         Self::moves(&self.rig.left, &[present])?;
