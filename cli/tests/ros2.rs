@@ -263,14 +263,8 @@ fn faulted_with(k: u16, node_args: &[&str], run_args: &[&str], expect: &str) {
 }
 
 fn held_both(node: &SimNode) {
-    let deadline = Instant::now() + Duration::from_secs(5);
-    loop {
-        let log = node.log();
-        if log.contains("hold /PSM1") && log.contains("hold /PSM2") {
-            return;
-        }
-        assert!(Instant::now() < deadline, "both arms were not held:\n{log}");
-        std::thread::sleep(Duration::from_millis(10));
+    if let Err(log) = node.held_both() {
+        panic!("both arms were not held:\n{log}");
     }
 }
 

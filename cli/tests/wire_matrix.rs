@@ -256,19 +256,8 @@ fn cell(fault: &str, nth: u32) -> Result<String, String> {
     if !held {
         return Err("failed or aborted without a hold journaled after the end".into());
     }
-    let deadline = std::time::Instant::now() + Duration::from_secs(5);
-    loop {
-        let log = node.log();
-        if log.contains("hold /PSM1") && log.contains("hold /PSM2") {
-            break;
-        }
-        if std::time::Instant::now() > deadline {
-            return Err(format!(
-                "the sim-node was not told to hold both arms:\n{log}"
-            ));
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
+    node.held_both()
+        .map_err(|log| format!("the sim-node was not told to hold both arms:\n{log}"))?;
     Ok(code)
 }
 

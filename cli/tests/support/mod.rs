@@ -93,6 +93,23 @@ impl Drop for SimNode {
     }
 }
 
+impl SimNode {
+    /// Whether the sim-node was told to hold both arms within 5 s; its log if not.
+    pub fn held_both(&self) -> Result<(), String> {
+        let deadline = Instant::now() + Duration::from_secs(5);
+        loop {
+            let log = self.log();
+            if log.contains("hold /PSM1") && log.contains("hold /PSM2") {
+                return Ok(());
+            }
+            if Instant::now() > deadline {
+                return Err(log);
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+    }
+}
+
 /// What a `stitch run` printed and wrote.
 pub struct Ran {
     pub code: Option<i32>,
