@@ -147,7 +147,23 @@ pub struct Reply {
     pub result: Result<Answer, String>,
 }
 
-type Inbox = Arc<(Mutex<HashMap<u64, Result<Answer, String>>>, Condvar)>;
+/// The answers heard, by sequence number, and the replies that could not be read.
+#[derive(Default)]
+struct Mail {
+    answers: HashMap<u64, Result<Answer, String>>,
+    /// Replies on the reply topic that did not decode: how many, and the last one's error.
+    /// Whose they were cannot be known, so an unanswered call names them as a likely cause.
+    unreadable: Option<(u64, String)>,
+}
+
+impl Mail {
+    fn unreadable(&mut self, e: String) {
+        let n = self.unreadable.as_ref().map_or(0, |(n, _)| *n);
+        self.unreadable = Some((n + 1, e));
+    }
+}
+
+type Inbox = Arc<(Mutex<Mail>, Condvar)>;
 
 /// Says whether the simulator is still there (`Err`: why not), asked while a call waits.
 pub type Probe = Box<dyn Fn() -> Result<(), String> + Send + Sync>;
@@ -188,17 +204,18 @@ impl Oracle {
             );
         let sink = Arc::clone(&inbox);
         bus.subscribe::<StringMsg, _>(REPLY_TOPIC, types::STRING, &stream_qos(), move |r| {
-            let Ok(m) = r else { return };
-            let Ok(reply) = serde_json::from_str::<Reply>(&m.data) else {
-                return;
-            };
-            if reply.client != client {
-                return;
+            let (mail, cv) = &*sink;
+            let mut mail = mail.lock().unwrap_or_else(PoisonError::into_inner);
+            match r.and_then(|m| {
+                serde_json::from_str::<Reply>(&m.data).map_err(|e| format!("not a reply: {e}"))
+            }) {
+                Ok(reply) if reply.client == client => {
+                    mail.answers.insert(reply.seq, reply.result);
+                }
+                Ok(_) => return,
+                Err(e) => mail.unreadable(e),
             }
-            let (map, cv) = &*sink;
-            map.lock()
-                .unwrap_or_else(PoisonError::into_inner)
-                .insert(reply.seq, reply.result);
+            drop(mail);
             cv.notify_all();
         })?;
         let missing = bus.wait_matched(&[(REQUEST_TOPIC, &request as &dyn Matched)], timeout);
@@ -257,7 +274,7 @@ impl Oracle {
         let (map, cv) = &*self.inbox;
         let deadline = Instant::now() + timeout;
         let answer = crate::ros2::wait_for(map, cv, deadline, Duration::from_millis(100), |m| {
-            if let Some(r) = m.remove(&seq) {
+            if let Some(r) = m.answers.remove(&seq) {
                 return Some(r.map_err(|e| format!("the simulator refused {name}: {e}")));
             }
             let probe = self.probe.lock().unwrap_or_else(PoisonError::into_inner);
@@ -267,8 +284,17 @@ impl Oracle {
             }
         });
         answer.unwrap_or_else(|| {
+            let unreadable = map
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .unreadable
+                .as_ref()
+                .map(|(n, e)| {
+                    format!(" ({n} replies on {REPLY_TOPIC} could not be read; the last: {e})")
+                })
+                .unwrap_or_default();
             Err(format!(
-                "the simulator did not answer {name} within {:.1} s",
+                "the simulator did not answer {name} within {:.1} s{unreadable}",
                 timeout.as_secs_f64()
             ))
         })

@@ -153,9 +153,17 @@ impl Bus {
             .spinner()
             .map_err(|e| format!("cannot start ROS 2 node {name}: {e:?}"))?;
         let executor = Arc::new(smol::Executor::new());
+        let who = name.to_string();
         executor
             .spawn(async move {
-                let _ = spinner.spin().await;
+                // The spinner keeps this node in the ROS graph (`ros2 node list`); the topics
+                // do not need it, so the run goes on, and says so on stderr.
+                if let Err(e) = spinner.spin().await {
+                    eprintln!(
+                        "stitch: ROS 2 node {who}: its spinner stopped ({e:?}); its topics keep \
+                         working, but ROS 2 tools may no longer list the node"
+                    );
+                }
             })
             .detach();
         let (stop, stopped) = async_channel::bounded::<()>(1);

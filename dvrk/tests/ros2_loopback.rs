@@ -88,3 +88,33 @@ fn a_pose_crosses_dds_between_two_participants() {
     let got = got.expect("a message within 20 s").expect("decoded");
     assert_eq!(got, sent);
 }
+
+/// A simulator whose replies cannot be read: the call fails, and says so, instead of only
+/// "did not answer" (the replies used to be dropped without a word).
+#[test]
+fn an_oracle_call_answered_only_with_unreadable_replies_names_them() {
+    use std::sync::{Arc, Mutex};
+    use stitch_dvrk::oracle::{Oracle, REPLY_TOPIC, REQUEST_TOPIC};
+    use stitch_dvrk::ros2::{Bus, types};
+    let options = Ros2Options {
+        domain_id: 200 + (std::process::id() % 30) as u16,
+    };
+    let mut fake = Bus::new(&options, "garbled_sim").expect("the fake simulator's bus");
+    let reply = Arc::new(Mutex::new(
+        fake.publisher::<StringMsg>(REPLY_TOPIC, types::STRING, &stream_qos())
+            .expect("reply topic"),
+    ));
+    let out = Arc::clone(&reply);
+    fake.subscribe::<StringMsg, _>(REQUEST_TOPIC, types::STRING, &stream_qos(), move |_| {
+        let _ = out.lock().expect("reply").publish(StringMsg {
+            data: "{\"client\": 1, \"seq\": ".into(),
+        });
+    })
+    .expect("request topic");
+    let e =
+        Oracle::connect(&options, Duration::from_secs(4)).expect_err("nothing readable came back");
+    assert!(
+        e.contains("did not answer Ping") && e.contains("could not be read"),
+        "{e}"
+    );
+}
