@@ -5,7 +5,7 @@
 //! constant calibration faults (joint offsets, hand-eye). Each cell's run must end —
 //! completed, failed with the class its failing step's phase gives, or aborted — without a
 //! panic or a hang; no primitive may run after the failure that ended it; the arms must be
-//! held at the end of a failed or aborted run; the journal must be complete (numbered
+//! held at the end of every run (completed ones too); the journal must be complete (numbered
 //! without a gap, ending with the outcome) and must say what the primitives reported.
 //!
 //! The matrix is written to `docs/reliability.md` (between its generated-table markers);
@@ -245,7 +245,7 @@ fn check(plan: &Plan, report: &Report, calls: &[Call]) -> Result<String, String>
     }
     let last_run = calls.iter().rposition(|c| matches!(c, Call::Run { .. }));
     match &report.outcome {
-        RunOutcome::Completed => Ok(code(&report.outcome)),
+        RunOutcome::Completed => held_at_the_end(calls, last_run).map(|()| code(&report.outcome)),
         RunOutcome::Failed {
             class,
             throw,
@@ -269,13 +269,20 @@ fn check(plan: &Plan, report: &Report, calls: &[Call]) -> Result<String, String>
     }
 }
 
+/// Every run: both arms were held after the last step it ran.
+fn held_at_the_end(calls: &[Call], last_run: Option<usize>) -> Result<(), String> {
+    let from = last_run.map_or(0, |i| i + 1);
+    if calls[from..].iter().any(|c| matches!(c, Call::Hold)) {
+        Ok(())
+    } else {
+        Err("the run ended without holding the arms".into())
+    }
+}
+
 /// A failed or aborted run: nothing ran after the failure that ended it, and both arms were
 /// held after it.
 fn held_after_the_end(calls: &[Call], last_run: Option<usize>) -> Result<String, String> {
-    let from = last_run.map_or(0, |i| i + 1);
-    if !calls[from..].iter().any(|c| matches!(c, Call::Hold)) {
-        return Err("the run ended failed or aborted without holding the arms".into());
-    }
+    held_at_the_end(calls, last_run)?;
     if let Some(Call::Run { outcome, .. }) = last_run.map(|i| &calls[i])
         && matches!(outcome, StepOutcome::Succeeded { .. })
     {

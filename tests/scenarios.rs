@@ -34,7 +34,7 @@ fn all_successes_complete_every_throw() {
     assert_eq!(run.report.outcome, RunOutcome::Completed);
     assert_eq!(run.primitives.calls.len(), 36);
     assert!(run.report.throws.iter().all(|t| t.completed));
-    assert!(run.primitives.holds.is_empty());
+    assert_eq!(run.primitives.holds, vec![36], "held once, at the end");
 }
 
 #[test]
@@ -209,7 +209,11 @@ fn pause_holds_the_arms_and_resume_runs_the_next_step() {
         6,
         "no step skipped, none repeated"
     );
-    assert_eq!(run.primitives.holds, vec![2], "held once, after two steps");
+    assert_eq!(
+        run.primitives.holds,
+        vec![2, 6],
+        "held at the pause, after two steps, and at the end"
+    );
 }
 
 #[test]

@@ -622,8 +622,9 @@ impl Mission {
         }
     }
 
-    /// Every throw succeeded.
-    #[state]
+    /// Every throw succeeded; the arms hold, as at every end (nothing moves until the next
+    /// run commands it).
+    #[state(entry_action = "hold_arms")]
     fn completed(event: &Event) -> Outcome<State> {
         let _ = event;
         Handled
