@@ -197,7 +197,7 @@ struct CameraOut {
 const FRAMES: [&str; 2] = ["stitch_stereo_left_optical", "stitch_stereo_right_optical"];
 
 impl CameraOut {
-    fn publish_infos(&self, stamp: msg::Time) {
+    fn publish_infos(&self, stamp: msg::Time, failures: &Failures) {
         let c = self
             .calibration
             .lock()
@@ -205,7 +205,7 @@ impl CameraOut {
             .clone();
         if let Some(c) = c {
             for (i, topic) in self.infos.iter().enumerate() {
-                let _ = topic.publish(camera::camera_info_msg(&c, i == 1, stamp, FRAMES[i]));
+                failures.note(topic.publish(camera::camera_info_msg(&c, i == 1, stamp, FRAMES[i])));
             }
         }
     }
@@ -216,6 +216,33 @@ struct Out {
     reply: Topic<StringMsg>,
     snapshot: Mutex<Snapshot>,
     camera: CameraOut,
+    failures: Failures,
+}
+
+/// What the node could not publish (DDS refused a write), kept until the main loop logs it:
+/// the 100 Hz stream would flood the log with one line per failure.
+#[derive(Default)]
+struct Failures(Mutex<Option<(u64, String)>>);
+
+impl Failures {
+    fn note(&self, sent: Result<(), String>) {
+        if let Err(e) = sent {
+            let mut f = self.0.lock().unwrap_or_else(PoisonError::into_inner);
+            let n = f.as_ref().map_or(0, |(n, _)| *n);
+            *f = Some((n + 1, e));
+        }
+    }
+
+    /// Log what failed since the last call, if anything.
+    fn report(&self, log: &mut dyn FnMut(&str)) {
+        let taken = self.0.lock().unwrap_or_else(PoisonError::into_inner).take();
+        if let Some((n, e)) = taken {
+            log(&format!(
+                "sim-node: {n} message{} could not be published; the last: {e}",
+                if n == 1 { "" } else { "s" }
+            ));
+        }
+    }
 }
 
 impl Out {
@@ -226,9 +253,10 @@ impl Out {
         };
         let t = stamp(stamps);
         for (i, a) in self.arms.iter().enumerate() {
-            let _ = a.measured_cp.publish(crate::pose_to_msg(&snap.0[i], t, ""));
-            let _ = a.setpoint_cp.publish(crate::pose_to_msg(&snap.1[i], t, ""));
-            let _ = a.jaw.publish(JointState {
+            let f = &self.failures;
+            f.note(a.measured_cp.publish(crate::pose_to_msg(&snap.0[i], t, "")));
+            f.note(a.setpoint_cp.publish(crate::pose_to_msg(&snap.1[i], t, "")));
+            f.note(a.jaw.publish(JointState {
                 header: msg::Header {
                     stamp: t,
                     frame_id: String::new(),
@@ -237,7 +265,7 @@ impl Out {
                 position: vec![snap.2[i]],
                 velocity: vec![],
                 effort: vec![],
-            });
+            }));
         }
     }
 }
@@ -373,6 +401,7 @@ pub fn serve(
         reply,
         snapshot: Mutex::new(snapshot(&world.world, Stamps::Now)),
         camera,
+        failures: Failures::default(),
     });
     let mut node = Node {
         out: Arc::clone(&out),
@@ -395,7 +424,9 @@ pub fn serve(
     };
     for i in 0..2 {
         node.publish_state(i);
-        let _ = node.out.arms[i].ratio.publish(Float64 { data: 1.0 });
+        node.out
+            .failures
+            .note(node.out.arms[i].ratio.publish(Float64 { data: 1.0 }));
     }
     // The state stream, at its rate, on its own thread.
     let publishing = Arc::new(AtomicBool::new(true));
@@ -410,7 +441,7 @@ pub fn serve(
         while p_on.load(Ordering::SeqCst) {
             p_out.publish_measurements();
             if next >= info_at {
-                p_out.camera.publish_infos(now_stamp());
+                p_out.camera.publish_infos(now_stamp(), &p_out.failures);
                 info_at = next + Duration::from_millis(100);
             }
             next += period;
@@ -451,6 +482,7 @@ pub fn serve(
         .map(|hz| Duration::from_secs_f64(1.0 / hz));
     let mut next_frame = Instant::now();
     while !stop.load(Ordering::SeqCst) {
+        out.failures.report(log);
         // A streaming camera: a frame when one is due, between commands.
         let mut idle = Duration::from_millis(50);
         if let Some(period) = frame_period
@@ -476,7 +508,10 @@ pub fn serve(
         node.handle(cmd, &mut world, &rx, log);
     }
     publishing.store(false, Ordering::SeqCst);
-    let _ = publisher.join();
+    if publisher.join().is_err() {
+        log("sim-node: the state stream's thread panicked");
+    }
+    out.failures.report(log);
     drop(bus);
     Ok(())
 }
@@ -515,6 +550,20 @@ fn camera_topics(
         ],
         calibration: Mutex::new(calibration),
     })
+}
+
+/// The QoS of the 100 Hz state streams the sim-node publishes (`measured_cp`, `setpoint_cp`,
+/// `jaw/measured_js`): [`stream_qos`] but transient-local, which every client's volatile
+/// reader still matches (a late reader is handed the last few samples, stamped as they were).
+///
+/// Why not volatile, as the dVRK's are: a volatile RustDDS 0.15 writer that matches a new
+/// reader marks every sequence number it ever wrote as a gap for that reader, in a set, and
+/// clones that set while it repairs. The set grows with the node's uptime (100 samples a
+/// second per stream), so each new client made the node's heap peak higher: over 100 missions
+/// back to back its resident memory grew 175 kB a mission with volatile streams, 82 kB with
+/// these (release build, 2026-12-03). A transient-local writer has nothing to gap.
+fn state_stream_qos() -> ros2_client::QosProfile {
+    stream_qos().durability(ros2_client::qos::Durability::TransientLocal)
 }
 
 fn arm_topics(bus: &mut Bus, name: &str, i: usize, tx: &Sender<Cmd>) -> Result<ArmOut, String> {
@@ -568,10 +617,11 @@ fn arm_topics(bus: &mut Bus, name: &str, i: usize, tx: &Sender<Cmd>) -> Result<A
         &q,
         forward(tx, move |m: Float64| Cmd::Ratio(i, m.data)),
     )?;
+    let s = state_stream_qos();
     Ok(ArmOut {
-        measured_cp: bus.publisher(&t("measured_cp"), types::POSE_STAMPED, &q)?,
-        setpoint_cp: bus.publisher(&t("setpoint_cp"), types::POSE_STAMPED, &q)?,
-        jaw: bus.publisher(&t("jaw/measured_js"), types::JOINT_STATE, &q)?,
+        measured_cp: bus.publisher(&t("measured_cp"), types::POSE_STAMPED, &s)?,
+        setpoint_cp: bus.publisher(&t("setpoint_cp"), types::POSE_STAMPED, &s)?,
+        jaw: bus.publisher(&t("jaw/measured_js"), types::JOINT_STATE, &s)?,
         state: bus.publisher(
             &t("operating_state"),
             types::OPERATING_STATE,
@@ -608,21 +658,25 @@ enum Motion {
 impl Node {
     fn publish_state(&self, i: usize) {
         let s = &self.states[i];
-        let _ = self.out.arms[i].state.publish(OperatingState {
-            header: msg::Header {
-                stamp: now_stamp(),
-                frame_id: String::new(),
-            },
-            state: s.state.into(),
-            is_homed: s.homed,
-            is_busy: s.busy,
-        });
+        self.out
+            .failures
+            .note(self.out.arms[i].state.publish(OperatingState {
+                header: msg::Header {
+                    stamp: now_stamp(),
+                    frame_id: String::new(),
+                },
+                state: s.state.into(),
+                is_homed: s.homed,
+                is_busy: s.busy,
+            }));
     }
 
     fn error(&mut self, i: usize, text: &str, log: &mut dyn FnMut(&str)) {
         let text = format!("{}: {text}", self.options.arms[i]);
         log(&format!("sim-node: error {text}"));
-        let _ = self.out.arms[i].error.publish(StringMsg { data: text });
+        self.out
+            .failures
+            .note(self.out.arms[i].error.publish(StringMsg { data: text }));
     }
 
     fn set_busy(&mut self, i: usize, busy: bool) {
@@ -633,7 +687,12 @@ impl Node {
     /// Stop arm `i` where it is, and count it; `during` names the motion under way.
     fn hold(&self, i: usize, world: &mut World, during: Option<u32>, log: &mut dyn FnMut(&str)) {
         world.holds[i] += 1;
-        let _ = world.world.arm(SIDES[i]).hold();
+        if let Err(e) = world.world.arm(SIDES[i]).hold() {
+            log(&format!(
+                "sim-node: the mock could not hold /{}: {e}",
+                self.options.arms[i]
+            ));
+        }
         let during = during.map(|n| format!(" during motion {n}"));
         log(&format!(
             "sim-node: hold /{}{}",
@@ -845,7 +904,9 @@ impl Node {
                     "sim-node: /{} trajectory speed ratio {r}",
                     self.options.arms[i]
                 ));
-                let _ = self.out.arms[i].ratio.publish(Float64 { data: r });
+                self.out
+                    .failures
+                    .note(self.out.arms[i].ratio.publish(Float64 { data: r }));
             }
             Cmd::Oracle(_) if self.oracle_silent => {}
             Cmd::Oracle(req) => {
@@ -856,7 +917,9 @@ impl Node {
                     result,
                 })
                 .unwrap_or_else(|e| format!("{{\"error\":\"{e}\"}}"));
-                let _ = self.out.reply.publish(StringMsg { data: text });
+                self.out
+                    .failures
+                    .note(self.out.reply.publish(StringMsg { data: text }));
             }
             Cmd::Unreadable(e) => log(&format!("sim-node: ignored {e}")),
         }
@@ -893,7 +956,7 @@ impl Node {
                 .publish(image.clone())
                 .map_err(|e| format!("cannot publish the pair: {e}"))?;
         }
-        c.publish_infos(*stamp);
+        c.publish_infos(*stamp, &self.out.failures);
         Ok(())
     }
 
@@ -1014,6 +1077,26 @@ pub static SERVO_LATENCIES: Mutex<Vec<f64>> = Mutex::new(Vec::new());
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn publish_failures_are_counted_and_logged_once_each_report() {
+        let f = Failures::default();
+        f.note(Ok(()));
+        let mut lines = Vec::new();
+        f.report(&mut |l: &str| lines.push(l.to_string()));
+        assert!(lines.is_empty(), "nothing failed: {lines:?}");
+        f.note(Err("cannot publish on /PSM1/measured_cp: a".into()));
+        f.note(Err("cannot publish on /PSM1/jaw/measured_js: b".into()));
+        f.report(&mut |l: &str| lines.push(l.to_string()));
+        f.report(&mut |l: &str| lines.push(l.to_string()));
+        assert_eq!(
+            lines,
+            [
+                "sim-node: 2 messages could not be published; the last: cannot publish on \
+              /PSM1/jaw/measured_js: b"
+            ]
+        );
+    }
 
     #[test]
     fn wire_faults_parse_and_bad_ones_say_why() {
