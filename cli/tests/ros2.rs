@@ -162,7 +162,7 @@ fn soak_missions_back_to_back_stay_twins_and_leave_nothing_behind() {
         "soak: {n} missions over ROS 2, 0 stalls, 0 twin divergences; mission wall time \
          median {} ms, max {} ms; sim-node RSS after warm-up {} kB, at the end {} kB (max \
          {} kB); threads {} -> {}; open files {} -> {}; client peak RSS median {} kB \
-         (first {} kB, last {} kB)",
+         (first {} kB, last {} kB); the sim-node took a fresh DDS participant {} times",
         median(wall.clone()),
         wall.iter().max().copied().unwrap_or(0),
         median(rss[warm..(warm + 5).min(rss.len())].to_vec()),
@@ -175,6 +175,7 @@ fn soak_missions_back_to_back_stay_twins_and_leave_nothing_behind() {
         median(clients.clone()),
         clients.first().copied().unwrap_or(0),
         clients.last().copied().unwrap_or(0),
+        node.log().matches("a fresh DDS participant").count(),
     );
     eprintln!("{summary}");
     let (start, end) = (

@@ -123,7 +123,7 @@ pub struct Bus {
     domain_id: u16,
     linger: Duration,
     // Kept alive as long as the node: the participant.
-    _context: Context,
+    context: Context,
 }
 
 impl std::fmt::Debug for Bus {
@@ -183,7 +183,7 @@ impl Bus {
             thread: Some(thread),
             domain_id: options.domain_id,
             linger: LINGER,
-            _context: context,
+            context,
         })
     }
 
@@ -196,6 +196,24 @@ impl Bus {
     /// The domain id it joined.
     pub fn domain_id(&self) -> u16 {
         self.domain_id
+    }
+
+    /// How many readers and writers of other participants its participant knows of now
+    /// (RustDDS lists its own among the discovered ones: those are left out).
+    pub fn remote_endpoints(&self) -> usize {
+        use ros2_client::dds::rustdds::RTPSEntity;
+        let dp = self.context.domain_participant();
+        let own = dp.guid().prefix;
+        let readers = dp.discovered_readers();
+        let writers = dp.discovered_writers();
+        readers
+            .iter()
+            .filter(|r| r.reader_proxy.remote_reader_guid.prefix != own)
+            .count()
+            + writers
+                .iter()
+                .filter(|w| w.writer_proxy.remote_writer_guid.prefix != own)
+                .count()
     }
 
     fn topic(

@@ -372,39 +372,10 @@ pub fn serve(
         options.sensing,
         options.camera.as_ref(),
     )?;
-    let mut bus = Bus::new(&options.ros, "sim_node")?;
     let (tx, rx) = std::sync::mpsc::channel::<Cmd>();
-    let mut arms = Vec::new();
-    for (i, name) in options.arms.iter().enumerate() {
-        arms.push(arm_topics(&mut bus, name, i, &tx)?);
-    }
-    let reply = bus.publisher::<StringMsg>(oracle::REPLY_TOPIC, types::STRING, &stream_qos())?;
-    let otx = tx.clone();
-    bus.subscribe::<StringMsg, _>(
-        oracle::REQUEST_TOPIC,
-        types::STRING,
-        &stream_qos(),
-        move |r| {
-            let cmd = match r.and_then(|m| {
-                serde_json::from_str::<Request>(&m.data)
-                    .map_err(|e| format!("{}: bad request: {e}", oracle::REQUEST_TOPIC))
-            }) {
-                Ok(req) => Cmd::Oracle(req),
-                Err(e) => Cmd::Unreadable(e),
-            };
-            let _ = otx.send(cmd);
-        },
-    )?;
-    let camera = camera_topics(&mut bus, &options.camera_topics, world.calibration())?;
-    let out = Arc::new(Out {
-        arms,
-        reply,
-        snapshot: Mutex::new(snapshot(&world.world, Stamps::Now)),
-        camera,
-        failures: Failures::default(),
-    });
+    let mut link = Link::open(options, &world, Stamps::Now, &tx)?;
     let mut node = Node {
-        out: Arc::clone(&out),
+        out: Arc::clone(&link.out),
         states: vec![
             ArmState {
                 state: "DISABLED",
@@ -413,6 +384,7 @@ pub fn serve(
             };
             2
         ],
+        ratios: [1.0; 2],
         motions: 0,
         stuck: false,
         deaf: false,
@@ -422,37 +394,7 @@ pub fn serve(
         options: options.clone(),
         pending: VecDeque::new(),
     };
-    for i in 0..2 {
-        node.publish_state(i);
-        node.out
-            .failures
-            .note(node.out.arms[i].ratio.publish(Float64 { data: 1.0 }));
-    }
-    // The state stream, at its rate, on its own thread.
-    let publishing = Arc::new(AtomicBool::new(true));
-    let (p_out, p_on, period) = (
-        Arc::clone(&out),
-        Arc::clone(&publishing),
-        Duration::from_secs_f64(1.0 / options.rate_hz),
-    );
-    let publisher = std::thread::spawn(move || {
-        let mut next = Instant::now();
-        let mut info_at = next;
-        while p_on.load(Ordering::SeqCst) {
-            p_out.publish_measurements();
-            if next >= info_at {
-                p_out.camera.publish_infos(now_stamp(), &p_out.failures);
-                info_at = next + Duration::from_millis(100);
-            }
-            next += period;
-            let now = Instant::now();
-            if next > now {
-                std::thread::sleep(next - now);
-            } else {
-                next = now;
-            }
-        }
-    });
+    node.announce();
     if let Some(c) = world.calibration() {
         let h = camera::HandEye::from_pose(&c.camera_to_robot);
         log(&format!(
@@ -481,8 +423,33 @@ pub fn serve(
         .camera_hz
         .map(|hz| Duration::from_secs_f64(1.0 / hz));
     let mut next_frame = Instant::now();
+    let (mut looked, mut idle_since) = (Instant::now(), None::<Instant>);
     while !stop.load(Ordering::SeqCst) {
-        out.failures.report(log);
+        link.out.failures.report(log);
+        // Every client gone for a while: a fresh participant (see `Link`).
+        if looked.elapsed() >= LOOK_FOR_CLIENTS {
+            looked = Instant::now();
+            if link.bus.remote_endpoints() > 0 {
+                link.served = true;
+                idle_since = None;
+            } else if link.served {
+                let since = *idle_since.get_or_insert(looked);
+                if since.elapsed() >= RECYCLE_AFTER_IDLE {
+                    idle_since = None;
+                    let stamps = link
+                        .out
+                        .snapshot
+                        .lock()
+                        .unwrap_or_else(PoisonError::into_inner)
+                        .stamps;
+                    link.close(log);
+                    link = Link::open(options, &world, stamps, &tx)?;
+                    node.out = Arc::clone(&link.out);
+                    node.announce();
+                    log("sim-node: every client has left: a fresh DDS participant");
+                }
+            }
+        }
         // A streaming camera: a frame when one is due, between commands.
         let mut idle = Duration::from_millis(50);
         if let Some(period) = frame_period
@@ -507,13 +474,121 @@ pub fn serve(
         };
         node.handle(cmd, &mut world, &rx, log);
     }
-    publishing.store(false, Ordering::SeqCst);
-    if publisher.join().is_err() {
-        log("sim-node: the state stream's thread panicked");
-    }
-    out.failures.report(log);
-    drop(bus);
+    link.close(log);
     Ok(())
+}
+
+/// How often the main loop asks DDS whether any client is there.
+const LOOK_FOR_CLIENTS: Duration = Duration::from_millis(250);
+
+/// How long every client must have been gone before the node takes a fresh participant.
+const RECYCLE_AFTER_IDLE: Duration = Duration::from_millis(500);
+
+/// The node's side of DDS: its participant (the bus), its topics and the state stream's
+/// thread, over a world that outlives it.
+///
+/// Why it is rebuilt once every client has left: a RustDDS 0.15 participant keeps something
+/// of every participant it ever met, after that one has left: an entry per remote endpoint in
+/// its discovery database's topic table, which is never removed, and thousands of discovery
+/// samples in its built-in readers' caches. A node that serves mission after mission grew by
+/// about 40–90 kB per client (`stitch run --robot ros2` brings two participants) and never
+/// stopped. A fresh participant drops all of it; the world, the arms' states and the wire
+/// faults stay with the node.
+struct Link {
+    bus: Bus,
+    out: Arc<Out>,
+    publishing: Arc<AtomicBool>,
+    publisher: Option<std::thread::JoinHandle<()>>,
+    /// Some client's endpoints were seen on this participant.
+    served: bool,
+}
+
+impl Link {
+    fn open(
+        options: &SimNodeOptions,
+        world: &World,
+        stamps: Stamps,
+        tx: &Sender<Cmd>,
+    ) -> Result<Self, String> {
+        let mut bus = Bus::new(&options.ros, "sim_node")?;
+        let mut arms = Vec::new();
+        for (i, name) in options.arms.iter().enumerate() {
+            arms.push(arm_topics(&mut bus, name, i, tx)?);
+        }
+        let reply =
+            bus.publisher::<StringMsg>(oracle::REPLY_TOPIC, types::STRING, &stream_qos())?;
+        let otx = tx.clone();
+        bus.subscribe::<StringMsg, _>(
+            oracle::REQUEST_TOPIC,
+            types::STRING,
+            &stream_qos(),
+            move |r| {
+                let cmd = match r.and_then(|m| {
+                    serde_json::from_str::<Request>(&m.data)
+                        .map_err(|e| format!("{}: bad request: {e}", oracle::REQUEST_TOPIC))
+                }) {
+                    Ok(req) => Cmd::Oracle(req),
+                    Err(e) => Cmd::Unreadable(e),
+                };
+                // Fails only once the node has stopped listening.
+                let _ = otx.send(cmd);
+            },
+        )?;
+        let camera = camera_topics(&mut bus, &options.camera_topics, world.calibration())?;
+        let out = Arc::new(Out {
+            arms,
+            reply,
+            snapshot: Mutex::new(snapshot(&world.world, stamps)),
+            camera,
+            failures: Failures::default(),
+        });
+        // The state stream, at its rate, on its own thread.
+        let publishing = Arc::new(AtomicBool::new(true));
+        let (p_out, p_on, period) = (
+            Arc::clone(&out),
+            Arc::clone(&publishing),
+            Duration::from_secs_f64(1.0 / options.rate_hz),
+        );
+        let publisher = std::thread::Builder::new()
+            .name("sim-node-state".into())
+            .spawn(move || {
+                let mut next = Instant::now();
+                let mut info_at = next;
+                while p_on.load(Ordering::SeqCst) {
+                    p_out.publish_measurements();
+                    if next >= info_at {
+                        p_out.camera.publish_infos(now_stamp(), &p_out.failures);
+                        info_at = next + Duration::from_millis(100);
+                    }
+                    next += period;
+                    let now = Instant::now();
+                    if next > now {
+                        std::thread::sleep(next - now);
+                    } else {
+                        next = now;
+                    }
+                }
+            })
+            .map_err(|e| format!("cannot start the state stream's thread: {e}"))?;
+        Ok(Self {
+            bus,
+            out,
+            publishing,
+            publisher: Some(publisher),
+            served: false,
+        })
+    }
+
+    /// Stop the state stream, say what could not be published, leave DDS.
+    fn close(mut self, log: &mut dyn FnMut(&str)) {
+        self.publishing.store(false, Ordering::SeqCst);
+        if let Some(p) = self.publisher.take()
+            && p.join().is_err()
+        {
+            log("sim-node: the state stream's thread panicked");
+        }
+        self.out.failures.report(log);
+    }
 }
 
 fn snapshot(world: &MockDvrk, stamps: Stamps) -> Snapshot {
@@ -635,6 +710,8 @@ fn arm_topics(bus: &mut Bus, name: &str, i: usize, tx: &Sender<Cmd>) -> Result<A
 struct Node {
     out: Arc<Out>,
     states: Vec<ArmState>,
+    /// Each arm's trajectory speed ratio, as last commanded (latched on `trajectory_j/ratio`).
+    ratios: [f64; 2],
     motions: u32,
     stuck: bool,
     /// A `deaf` fault fired: motion commands are ignored.
@@ -656,6 +733,19 @@ enum Motion {
 }
 
 impl Node {
+    /// Publish what the dVRK latches (each arm's operating state and speed ratio): at the
+    /// start, and on a fresh participant.
+    fn announce(&self) {
+        for i in 0..2 {
+            self.publish_state(i);
+            self.out
+                .failures
+                .note(self.out.arms[i].ratio.publish(Float64 {
+                    data: self.ratios[i],
+                }));
+        }
+    }
+
     fn publish_state(&self, i: usize) {
         let s = &self.states[i];
         self.out
@@ -904,6 +994,7 @@ impl Node {
                     "sim-node: /{} trajectory speed ratio {r}",
                     self.options.arms[i]
                 ));
+                self.ratios[i] = r;
                 self.out
                     .failures
                     .note(self.out.arms[i].ratio.publish(Float64 { data: r }));
