@@ -82,10 +82,37 @@ fn parse(path: &Path, buf: &[u8]) -> Result<Recorded, RecorderError> {
     };
     let reader = LinearReader::new_with_options(buf, Options::IgnoreEndMagic.into())
         .map_err(|e| bad(path, format!("not an MCAP file: {e}")))?;
-    for record in reader {
-        // An unfinished file ends in a record cut short: everything before it stands.
-        let Ok(record) = record else { break };
-        take(path, &mut out, record)?;
+    let frames = frames(buf);
+    for (n, record) in reader.enumerate() {
+        match record {
+            Ok(record) => take(path, &mut out, record).map_err(|e| match e {
+                RecorderError::Mcap { path, why } => RecorderError::Mcap {
+                    path,
+                    why: format!(
+                        "record {n} at byte {}: {why}",
+                        frames.whole.get(n).copied().unwrap_or(0)
+                    ),
+                },
+                other => other,
+            })?,
+            Err(e) => match frames.whole.get(n) {
+                // A record whose bytes are all there, yet unreadable: the file is damaged
+                // (a flipped bit, a bad checksum), not cut short. What follows it would be
+                // lost without a word, so it is an error, and says where.
+                Some(&at) if !buf[at..].iter().all(|&b| b == 0) => {
+                    return Err(bad(
+                        path,
+                        format!(
+                            "record {n} at byte {at} is damaged, with {} bytes after it: {e}",
+                            buf.len() - frames.end_of(n)
+                        ),
+                    ));
+                }
+                // An unfinished file ends in a record cut short (or in zeros a crash left):
+                // everything before it stands.
+                _ => break,
+            },
+        }
     }
     if out.header.0.is_empty() {
         return Err(bad(path, "no MCAP header"));
@@ -145,6 +172,14 @@ fn take(path: &Path, out: &mut Recorded, record: McapRecord<'_>) -> Result<(), R
                 ));
             }
             chunk_records_fit(&data).map_err(|why| bad(path, format!("inside a chunk: {why}")))?;
+            // The reader does not check a chunk's checksum: a flipped bit in a record's
+            // payload would be read as if it were what was written.
+            if header.uncompressed_crc != 0 && crc32fast::hash(&data) != header.uncompressed_crc {
+                return Err(bad(
+                    path,
+                    "a chunk is damaged: its checksum does not match its records",
+                ));
+            }
             for inner in LinearReader::sans_magic(&data) {
                 let inner = inner.map_err(|e| bad(path, format!("inside a chunk: {e}")))?;
                 take(path, out, inner)?;
@@ -153,6 +188,46 @@ fn take(path: &Path, out: &mut Recorded, record: McapRecord<'_>) -> Result<(), R
         _ => {}
     }
     Ok(())
+}
+
+/// Where a file's top-level records lie, by their framing alone (opcode, length): the start
+/// of each one whose bytes are all in the file, up to the footer. A record that claims more
+/// bytes than are left is a tail cut short and is not listed.
+struct Frames {
+    whole: Vec<usize>,
+    ends: Vec<usize>,
+}
+
+impl Frames {
+    /// Where record `n` ends (the file's end when it is not whole).
+    fn end_of(&self, n: usize) -> usize {
+        self.ends.get(n).copied().unwrap_or(usize::MAX)
+    }
+}
+
+fn frames(buf: &[u8]) -> Frames {
+    const MAGIC_LEN: usize = 8;
+    const FOOTER: u8 = 0x02;
+    let (mut whole, mut ends) = (Vec::new(), Vec::new());
+    let mut at = MAGIC_LEN;
+    while let Some(head) = buf.get(at..at + 9) {
+        let mut len = [0u8; 8];
+        len.copy_from_slice(&head[1..]);
+        let Some(end) = usize::try_from(u64::from_le_bytes(len))
+            .ok()
+            .and_then(|l| (at + 9).checked_add(l))
+            .filter(|&end| end <= buf.len())
+        else {
+            break;
+        };
+        whole.push(at);
+        ends.push(end);
+        if head[0] == FOOTER {
+            break;
+        }
+        at = end;
+    }
+    Frames { whole, ends }
 }
 
 /// Whether a chunk's records lie within it, none of them a chunk: checked before the `mcap`

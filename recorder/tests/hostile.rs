@@ -111,3 +111,69 @@ fn an_attachment_shorter_than_its_own_header_is_refused_not_a_panic() {
     assert!(text.contains("a malformed record"), "{text}");
     assert!(text.contains("fuzz-attachment.mcap"), "{text}");
 }
+
+/// Where the top-level records with `opcode` start (by their framing), after the magic.
+fn records_with_opcode(bytes: &[u8], opcode: u8) -> Vec<(usize, usize)> {
+    let (mut at, mut found) = (8, Vec::new());
+    while at + 9 <= bytes.len() {
+        let len = u64::from_le_bytes(bytes[at + 1..at + 9].try_into().expect("8 bytes")) as usize;
+        if bytes[at] == opcode {
+            found.push((at, at + 9 + len));
+        }
+        at += 9 + len;
+    }
+    found
+}
+
+#[test]
+fn a_damaged_record_inside_a_finished_file_is_an_error_naming_where_not_a_cut_short_tail() {
+    // Before, any record the reader could not read ended the reading, as a file cut short by
+    // a crash does: a bit flipped in the middle of a finished file gave the records before it
+    // and said nothing of the rest.
+    let mut bytes = source().to_vec();
+    let chunks = records_with_opcode(&bytes, 0x06);
+    let (start, end) = chunks[1];
+    assert!(
+        end < bytes.len() - 100,
+        "the chunk is followed by more of the file"
+    );
+    bytes[end - 3] ^= 0x40; // inside the chunk's records: its checksum no longer matches
+    let path = tmp("damaged.mcap");
+    std::fs::write(&path, &bytes).expect("written");
+    let e = stitch_recorder::read(&path).expect_err("a damaged file is refused");
+    let text = e.to_string();
+    assert!(
+        text.contains(&format!("at byte {start}"))
+            && text.contains("damaged")
+            && text.contains("damaged.mcap"),
+        "{text}"
+    );
+    // A record's framing broken in the middle of the file (its opcode turned into a
+    // chunk's, whose header it cannot hold) is damage too, not a tail cut short.
+    let mut bytes = source().to_vec();
+    let (at, _) = records_with_opcode(&bytes, 0x07)[0];
+    bytes[at] = 0x06;
+    std::fs::write(&path, &bytes).expect("written");
+    let e = stitch_recorder::read(&path).expect_err("a damaged file is refused");
+    let text = e.to_string();
+    assert!(
+        text.contains(&format!("at byte {at}")) && text.contains("damaged"),
+        "{text}"
+    );
+}
+
+#[test]
+fn a_file_cut_short_or_ending_in_zeros_a_crash_left_is_read_to_its_last_whole_record() {
+    let bytes = source();
+    let (_, end) = records_with_opcode(bytes, 0x06)[1];
+    for (name, tail) in [("cut.mcap", vec![0xAB; 5]), ("zeros.mcap", vec![0; 4096])] {
+        // The first chunk whole, then a record cut short (or zeros).
+        let mut cut = bytes[..end].to_vec();
+        cut.extend_from_slice(&tail);
+        let path = tmp(name);
+        std::fs::write(&path, &cut).expect("written");
+        let got = stitch_recorder::read(&path).expect("an unfinished file is read");
+        assert!(!got.complete, "{name}");
+        assert!(!got.records.is_empty(), "{name}: the first chunk's records");
+    }
+}
