@@ -124,6 +124,8 @@ pub struct Bus {
     linger: Duration,
     // Kept alive as long as the node: the participant.
     context: Context,
+    /// Discovery events, once asked for.
+    discovery: Option<async_channel::Receiver<ros2_client::NodeEvent>>,
 }
 
 impl std::fmt::Debug for Bus {
@@ -184,6 +186,7 @@ impl Bus {
             domain_id: options.domain_id,
             linger: LINGER,
             context,
+            discovery: None,
         })
     }
 
@@ -196,6 +199,22 @@ impl Bus {
     /// The domain id it joined.
     pub fn domain_id(&self) -> u16 {
         self.domain_id
+    }
+
+    /// Start taking note of discovery events (a participant, reader or writer found or
+    /// lost), for [`Bus::discovery_events`].
+    pub fn watch_discovery(&mut self) {
+        self.discovery = self.node.status_receiver();
+    }
+
+    /// How many discovery events arrived since the last call (after [`Bus::watch_discovery`];
+    /// 0 before). A burst may be counted short: ros2-client drops what a full channel of 8
+    /// cannot take, so this says whether there was any, not how many.
+    pub fn discovery_events(&self) -> usize {
+        let Some(rx) = &self.discovery else {
+            return 0;
+        };
+        std::iter::from_fn(|| rx.try_recv().ok()).count()
     }
 
     /// How many readers and writers of other participants its participant knows of now

@@ -429,8 +429,15 @@ pub fn serve(
         // Every client gone for a while: a fresh participant (see `Link`).
         if looked.elapsed() >= LOOK_FOR_CLIENTS {
             looked = Instant::now();
+            // A discovery event (a participant found, an endpoint lost) is a client coming or
+            // going: never recycle then. A client found but not yet counted could already
+            // have matched this participant's endpoints; what it sends to the old participant
+            // is lost and sent again (confirmed commands are resent, pings repeated).
+            let stirring = link.bus.discovery_events() > 0;
             if link.bus.remote_endpoints() > 0 {
                 link.served = true;
+                idle_since = None;
+            } else if stirring {
                 idle_since = None;
             } else if link.served {
                 let since = *idle_since.get_or_insert(looked);
@@ -442,6 +449,9 @@ pub fn serve(
                         .lock()
                         .unwrap_or_else(PoisonError::into_inner)
                         .stamps;
+                    // Nothing to deliver: no linger, so a client arriving now finds the
+                    // old participant gone at once rather than matching it.
+                    link.bus.set_linger(Duration::ZERO);
                     link.close(log);
                     link = Link::open(options, &world, stamps, &tx)?;
                     node.out = Arc::clone(&link.out);
@@ -451,7 +461,7 @@ pub fn serve(
             }
         }
         // A streaming camera: a frame when one is due, between commands.
-        let mut idle = Duration::from_millis(50);
+        let mut idle = LOOK_FOR_CLIENTS;
         if let Some(period) = frame_period
             && world.camera.is_some()
         {
@@ -479,10 +489,11 @@ pub fn serve(
 }
 
 /// How often the main loop asks DDS whether any client is there.
-const LOOK_FOR_CLIENTS: Duration = Duration::from_millis(250);
+const LOOK_FOR_CLIENTS: Duration = Duration::from_millis(20);
 
-/// How long every client must have been gone before the node takes a fresh participant.
-const RECYCLE_AFTER_IDLE: Duration = Duration::from_millis(500);
+/// How long every client must have been gone (no endpoint of another participant, no
+/// discovery event) before the node takes a fresh participant.
+const RECYCLE_AFTER_IDLE: Duration = Duration::from_millis(60);
 
 /// The node's side of DDS: its participant (the bus), its topics and the state stream's
 /// thread, over a world that outlives it.
@@ -511,6 +522,7 @@ impl Link {
         tx: &Sender<Cmd>,
     ) -> Result<Self, String> {
         let mut bus = Bus::new(&options.ros, "sim_node")?;
+        bus.watch_discovery();
         let mut arms = Vec::new();
         for (i, name) in options.arms.iter().enumerate() {
             arms.push(arm_topics(&mut bus, name, i, tx)?);
