@@ -987,10 +987,15 @@ impl Node {
                         if let Err(e) = world.world.arm(SIDES[i]).servo_cp(&p) {
                             self.error(i, &e.to_string(), log);
                         }
-                        SERVO_LATENCIES
+                        let mut l = SERVO_LATENCIES
                             .lock()
-                            .unwrap_or_else(PoisonError::into_inner)
-                            .push(latency_s);
+                            .unwrap_or_else(PoisonError::into_inner);
+                        // A node streamed to for hours keeps the latest only.
+                        if l.len() >= SERVO_LATENCIES_KEPT {
+                            l.drain(..SERVO_LATENCIES_KEPT / 2);
+                        }
+                        l.push(latency_s);
+                        drop(l);
                         self.update_snapshot(world);
                     }
                     Ok(_) => {
@@ -1173,9 +1178,14 @@ impl Node {
     }
 }
 
-/// One-way latencies of every `servo_cp` received (receive time minus the command's stamp,
-/// both this machine's clock), s: what `stitch bench ros2` reads.
+/// One-way latencies of the `servo_cp`s received, the latest [`SERVO_LATENCIES_KEPT`]
+/// (receive time minus the command's stamp, both this machine's clock), s: what `stitch
+/// bench ros2` reads.
 pub static SERVO_LATENCIES: Mutex<Vec<f64>> = Mutex::new(Vec::new());
+
+/// At most this many latencies are kept (the older half goes when it is reached): `stitch
+/// bench ros2` streams 5 s at 1 kHz, a node streamed to for hours would otherwise grow.
+pub const SERVO_LATENCIES_KEPT: usize = 200_000;
 
 #[cfg(test)]
 mod tests {
