@@ -12,7 +12,7 @@ use stitch_eval::own as evaluate;
 use stitch_eval::{Accuracy, FrameResult, failure_kind, percentile};
 use stitch_perception::{
     JawHint, MaskRowMatcher, NeedleEnd, NeedlePipeline, PerceptionError, Rect, SemiGlobalMatcher,
-    StereoMatcher,
+    SgmPaths, StereoMatcher,
 };
 use stitch_robot::{Needle, Pose, RgbImage, StereoCalibration};
 use stitch_sim::{CameraConfig, MockDvrk, SceneConfig, StereoRenderer, Streams};
@@ -42,22 +42,46 @@ pub enum PerceiveCommand {
         #[command(flatten)]
         options: PipelineOptions,
     },
-    /// Compute the disparity over the needle's region (or --roi) and write it as PFM
-    /// (little-endian, one channel, invalid = +inf, bottom row first as PFM requires).
+    /// Dense disparity of a rectified pair over the whole left image (or --roi), or over the
+    /// needle's region (--needle), written as PFM (little-endian, one channel, invalid = +inf,
+    /// bottom row first as PFM requires). The search range: --min-disparity/--max-disparity,
+    /// or from --calib and --depth-range.
     Disparity {
         /// Left image (PNG).
         left: PathBuf,
         /// Right image.
         right: PathBuf,
-        /// The stereo calibration (TOML).
+        /// The stereo calibration (TOML): the disparity range from its focal length and
+        /// baseline and --depth-range; needed for --needle.
         #[arg(long)]
-        calib: PathBuf,
+        calib: Option<PathBuf>,
         /// Where to write the disparity map; it covers the whole left image.
         #[arg(long)]
         out: PathBuf,
-        /// Match over this left-image region instead of the needle's: x0,y0,x1,y1 pixels.
+        /// Match over this left-image region: x0,y0,x1,y1 pixels.
         #[arg(long, value_parser = parse_rect)]
         roi: Option<Rect>,
+        /// Least disparity searched, pixels (left x − right x).
+        #[arg(long, requires = "max_disparity")]
+        min_disparity: Option<u32>,
+        /// Greatest disparity searched, pixels.
+        #[arg(long, requires = "min_disparity")]
+        max_disparity: Option<u32>,
+        /// Nearest and farthest depth to search, metres: near,far (with --calib; default the
+        /// needle pipeline's 0.05,0.6).
+        #[arg(long, value_parser = parse_depths, requires = "calib", conflicts_with = "min_disparity")]
+        depth_range: Option<[f64; 2]>,
+        /// Match the needle's region as the pipeline does (its masks and its range; needs
+        /// --calib) instead of every pixel.
+        #[arg(long, requires = "calib", conflicts_with_all = ["min_disparity", "depth_range"])]
+        needle: bool,
+        /// Semi-global matching's aggregation paths (dense matching; --needle uses the
+        /// pipeline's four).
+        #[arg(long, value_enum, default_value_t = PathsArg::Five)]
+        paths: PathsArg,
+        /// Match on one thread (four and eight paths use two by default; five, one).
+        #[arg(long)]
+        single_thread: bool,
         #[command(flatten)]
         options: PipelineOptions,
     },
@@ -137,6 +161,20 @@ pub enum MatcherKind {
     Sgm,
 }
 
+/// The most cost cells (pixels × disparities) `perceive disparity` matches densely.
+pub const DENSE_MAX_CELLS: usize = 1 << 29;
+
+/// Semi-global matching's aggregation paths.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum PathsArg {
+    /// → ← ↓ ↑.
+    Four,
+    /// → ← ↓ ↘ ↙ in one pass over the rows (no cost volume held; one thread).
+    Five,
+    /// The four and the diagonals.
+    Eight,
+}
+
 #[derive(Debug, clap::Args)]
 pub struct PipelineOptions {
     /// The disparity matcher.
@@ -168,6 +206,22 @@ fn parse_point(s: &str) -> Result<[f64; 3], String> {
         [x, y, z] if v.iter().all(|c| c.is_finite()) => Ok([x, y, z]),
         _ => Err(format!(
             "{s:?}: expected three finite numbers x,y,z in metres"
+        )),
+    }
+}
+
+fn parse_depths(s: &str) -> Result<[f64; 2], String> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|p| p.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|e| format!("{s:?}: {e}; expected near,far in metres"))?;
+    match v[..] {
+        [near, far] if near.is_finite() && far.is_finite() && 0.0 < near && near < far => {
+            Ok([near, far])
+        }
+        _ => Err(format!(
+            "{s:?}: expected near,far in metres with 0 < near < far"
         )),
     }
 }
@@ -303,21 +357,71 @@ pub fn perceive(command: PerceiveCommand) -> anyhow::Result<u8> {
             calib,
             out,
             roi,
+            min_disparity,
+            max_disparity,
+            depth_range,
+            needle,
+            paths,
+            single_thread,
             options,
         } => {
-            let c = read_calibration(&calib)?;
+            let c = calib.as_deref().map(read_calibration).transpose()?;
             let (l, r) = (read_png(&left)?, read_png(&right)?);
-            let (w, h) = (c.width, c.height);
-            let p = pipeline(c, &options)?;
-            let map = match p.disparity(&l, &r, roi) {
-                Ok(m) => m,
-                Err(e @ PerceptionError::Config { .. }) => anyhow::bail!("{e}"),
-                Err(e) => {
-                    failure_json(&mut std::io::stdout().lock(), &e)?;
-                    eprintln!("no disparity: {e}");
-                    return Ok(NO_ESTIMATE);
+            let (w, h) = (l.width, l.height);
+            let t0 = Instant::now();
+            let map = if needle {
+                let c = c.context("--needle needs --calib")?;
+                let p = pipeline(c, &options)?;
+                match p.disparity(&l, &r, roi) {
+                    Ok(m) => m,
+                    Err(e @ PerceptionError::Config { .. }) => anyhow::bail!("{e}"),
+                    Err(e) => {
+                        failure_json(&mut std::io::stdout().lock(), &e)?;
+                        eprintln!("no disparity: {e}");
+                        return Ok(NO_ESTIMATE);
+                    }
                 }
+            } else {
+                if options.matcher != MatcherKind::Sgm {
+                    anyhow::bail!(
+                        "--matcher mask-row matches the needle's masks: add --needle, or match every pixel with sgm"
+                    );
+                }
+                let [lo, hi] = match (min_disparity.zip(max_disparity), &c) {
+                    (Some((lo, hi)), _) => [lo, hi],
+                    (None, Some(c)) => {
+                        if (c.width, c.height) != (w, h) {
+                            anyhow::bail!(
+                                "the calibration is for {}×{} images, {} is {w}×{h}",
+                                c.width,
+                                c.height,
+                                left.display()
+                            );
+                        }
+                        let [near, far] = depth_range.unwrap_or([0.05, 0.6]);
+                        let fb = c.fx * c.baseline_m;
+                        [(fb / far).floor() as u32, (fb / near).ceil() as u32]
+                    }
+                    (None, None) => anyhow::bail!(
+                        "no disparity range: give --min-disparity and --max-disparity (pixels), or --calib (and --depth-range)"
+                    ),
+                };
+                let sgm = SemiGlobalMatcher {
+                    around_mask_px: None,
+                    // 3 bytes a cell on one thread, 5 on two: at most about 1.6 or 2.7 GB.
+                    max_cells: DENSE_MAX_CELLS,
+                    paths: match paths {
+                        PathsArg::Four => SgmPaths::Four,
+                        PathsArg::Five => SgmPaths::Five,
+                        PathsArg::Eight => SgmPaths::Eight,
+                    },
+                    ..SemiGlobalMatcher::default()
+                };
+                let region = roi.unwrap_or(Rect::full(w, h));
+                sgm.dense(&l, &r, region, lo, hi, !single_thread)
+                    .map_err(|e| anyhow::anyhow!("{e}"))?
             };
+            let took = t0.elapsed();
             let mut full = vec![f32::INFINITY; (w * h) as usize];
             for y in map.roi.y0..map.roi.y1 {
                 for x in map.roi.x0..map.roi.x1 {
@@ -338,6 +442,7 @@ pub fn perceive(command: PerceiveCommand) -> anyhow::Result<u8> {
                 map.roi.y0,
                 map.roi.y1
             );
+            eprintln!("matched in {:.2} ms", took.as_secs_f64() * 1e3);
             Ok(crate::exit::OK)
         }
         PerceiveCommand::Render {

@@ -119,6 +119,7 @@ fn the_disparity_map_is_written_as_pfm_with_the_needle_at_its_depth() {
             s(&pfm),
             "--matcher",
             matcher,
+            "--needle",
         ]);
         assert_eq!(out.status.code(), Some(0), "{}", text(&out.stderr));
         let bytes = std::fs::read(&pfm).expect("pfm");
@@ -221,6 +222,181 @@ fn bad_calibrations_and_images_are_refused_with_the_reason() {
     assert_eq!(out.status.code(), Some(1));
     assert!(
         text(&out.stderr).contains("nope.png"),
+        "{}",
+        text(&out.stderr)
+    );
+}
+
+/// A textured scene with no needle in it, as a rectified pair with a known disparity: a
+/// slanted background plane (disparity 24 + 8·x/w, sub-pixel everywhere) and a square in
+/// front of it (disparity 40). Each surface carries its own smooth random texture (value
+/// noise on a 2.5-pixel lattice), sampled where each camera sees it. Returns the truth per
+/// left pixel, `None` where the right camera does not see the point (occluded by the
+/// square).
+fn textured_pair(d: &Path, w: u32, h: u32) -> Vec<Option<f32>> {
+    let lattice = |seed: u64| {
+        let (cols, rows) = (w as usize / 2 + 4, h as usize / 2 + 4);
+        let mut state = seed;
+        let v: Vec<f32> = (0..cols * rows)
+            .map(|_| {
+                state ^= state << 13;
+                state ^= state >> 7;
+                state ^= state << 17;
+                (state % 1000) as f32 / 1000.0
+            })
+            .collect();
+        move |u: f32, y: f32| -> f32 {
+            let (gx, gy) = (u / 2.5 + 1.0, y / 2.5 + 1.0);
+            let (ix, iy) = (gx.floor() as usize, gy.floor() as usize);
+            let (fx, fy) = (gx - gx.floor(), gy - gy.floor());
+            let at = |i: usize, j: usize| v[(j.min(rows - 1)) * cols + i.min(cols - 1)];
+            let top = at(ix, iy) * (1.0 - fx) + at(ix + 1, iy) * fx;
+            let bottom = at(ix, iy + 1) * (1.0 - fx) + at(ix + 1, iy + 1) * fx;
+            top * (1.0 - fy) + bottom * fy
+        }
+    };
+    let (back, front) = (
+        lattice(0x9E37_79B9_7F4A_7C15),
+        lattice(0xD1B5_4A32_D192_ED03),
+    );
+    let (a, b) = (24.0f32, 8.0 / w as f32);
+    let (sx0, sx1, sy0, sy1) = (w as f32 * 0.45, w as f32 * 0.7, h / 4, 3 * h / 4);
+    let in_square = |x: f32, y: u32| (sx0..sx1).contains(&x) && (sy0..sy1).contains(&y);
+    let grey = |v: f32| image::Rgb([(40.0 + 180.0 * v) as u8; 3]);
+    let (mut left, mut right) = (image::RgbImage::new(w, h), image::RgbImage::new(w, h));
+    let mut truth = Vec::with_capacity((w * h) as usize);
+    for y in 0..h {
+        for x in 0..w {
+            let xf = x as f32;
+            // Left: the square where it is, the plane elsewhere (texture at u = x).
+            if in_square(xf, y) {
+                left.put_pixel(x, y, grey(front(xf, y as f32)));
+                truth.push(Some(40.0));
+            } else {
+                left.put_pixel(x, y, grey(back(xf, y as f32)));
+                let d = a + b * xf;
+                // Behind the square as the right camera sees it?
+                truth.push((!in_square(xf - d + 40.0, y)).then_some(d));
+            }
+            // Right pixel xr sees the square if xr + 40 is on it, else the plane point
+            // whose left x satisfies xl − (a + b·xl) = xr.
+            if in_square(xf + 40.0, y) {
+                right.put_pixel(x, y, grey(front(xf + 40.0, y as f32)));
+            } else {
+                let xl = (xf + a) / (1.0 - b);
+                right.put_pixel(x, y, grey(back(xl, y as f32)));
+            }
+        }
+    }
+    left.save(d.join("left.png")).expect("left.png");
+    right.save(d.join("right.png")).expect("right.png");
+    truth
+}
+
+fn read_pfm(path: &Path, w: usize, h: usize) -> Vec<f32> {
+    let bytes = std::fs::read(path).expect("pfm");
+    let header = format!("Pf\n{w} {h}\n-1.0\n");
+    assert!(bytes.starts_with(header.as_bytes()), "PFM header");
+    let rows: Vec<f32> = bytes[header.len()..]
+        .chunks_exact(4)
+        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect();
+    // PFM rows run bottom to top.
+    rows.chunks_exact(w).rev().flatten().copied().collect()
+}
+
+#[test]
+fn dense_disparity_on_a_textured_pair_without_a_needle_matches_the_known_disparity() {
+    let d = dir("dense");
+    let (w, h) = (320u32, 200u32);
+    let truth = textured_pair(&d, w, h);
+    let pfm = d.join("d.pfm");
+    // The range given in pixels, or from a calibration and a depth range (f·B = 600 × 0.05
+    // = 30 px·m: 0.5 to 1.5 m is 20 to 60 px).
+    let calib = d.join("calib.toml");
+    std::fs::write(
+        &calib,
+        format!(
+            "fx = 600.0\nfy = 600.0\ncx = 160.0\ncy = 100.0\nbaseline_m = 0.05\nwidth = {w}\nheight = {h}\n\n[camera_to_robot]\ntranslation_m = [0.0, 0.0, 0.0]\nrotation = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]\n"
+        ),
+    )
+    .expect("calib");
+    let (l, r) = (d.join("left.png"), d.join("right.png"));
+    let ranges: [&[&str]; 2] = [
+        &["--min-disparity", "16", "--max-disparity", "63"],
+        &["--calib", s(&calib), "--depth-range", "0.5,1.5"],
+    ];
+    for range in ranges {
+        for paths in ["five", "four", "eight"] {
+            let mut args = vec!["perceive", "disparity", s(&l), s(&r), "--out", s(&pfm)];
+            args.extend_from_slice(range);
+            args.extend_from_slice(&["--paths", paths]);
+            let out = stitch(&args);
+            assert_eq!(out.status.code(), Some(0), "{}", text(&out.stderr));
+            assert!(
+                text(&out.stderr).contains("matched in"),
+                "{}",
+                text(&out.stderr)
+            );
+            let map = read_pfm(&pfm, w as usize, h as usize);
+            // Scored away from the borders (the census window, and the first 64 columns
+            // that have no match at every disparity).
+            let (mut seen, mut right, mut wrong) = (0usize, 0usize, 0usize);
+            let mut errors = Vec::new();
+            for y in 4..h as usize - 4 {
+                for x in 64..w as usize - 4 {
+                    let Some(t) = truth[y * w as usize + x] else {
+                        continue;
+                    };
+                    seen += 1;
+                    let e = map[y * w as usize + x];
+                    if !e.is_finite() {
+                        continue;
+                    }
+                    errors.push((e - t).abs());
+                    if (e - t).abs() <= 1.0 {
+                        right += 1;
+                    } else if (e - t).abs() > 2.0 {
+                        wrong += 1;
+                    }
+                }
+            }
+            errors.sort_by(f32::total_cmp);
+            let median = errors[errors.len() / 2];
+            let what = format!(
+                "{range:?} {paths}: {right} of {seen} within 1 px, {wrong} off by more than 2, median error {median:.3} px"
+            );
+            eprintln!("{what}");
+            assert!(right * 100 >= seen * 90, "{what}");
+            assert!(wrong * 100 <= seen * 2, "{what}");
+            assert!(median < 0.3, "{what}");
+        }
+    }
+    // No range at all, and the needle's matcher without the needle, are refused with why.
+    let out = stitch(&["perceive", "disparity", s(&l), s(&r), "--out", s(&pfm)]);
+    assert_eq!(out.status.code(), Some(1), "{}", text(&out.stderr));
+    assert!(
+        text(&out.stderr).contains("no disparity range"),
+        "{}",
+        text(&out.stderr)
+    );
+    let out = stitch(&[
+        "perceive",
+        "disparity",
+        s(&l),
+        s(&r),
+        "--out",
+        s(&pfm),
+        "--min-disparity",
+        "0",
+        "--max-disparity",
+        "63",
+        "--matcher",
+        "mask-row",
+    ]);
+    assert_eq!(out.status.code(), Some(1), "{}", text(&out.stderr));
+    assert!(
+        text(&out.stderr).contains("add --needle"),
         "{}",
         text(&out.stderr)
     );

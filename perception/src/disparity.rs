@@ -244,6 +244,21 @@ impl StereoMatcher for MaskRowMatcher {
     }
 }
 
+/// Which paths semi-global matching aggregates along.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SgmPaths {
+    /// → ← ↓ ↑: the needle pipeline's (half the time of eight; a thin wire's neighbourhood
+    /// gains nothing measurable from the diagonals).
+    #[default]
+    Four,
+    /// → ← ↓ ↘ ↙, in one pass over the rows holding only a few of them (no cost volume):
+    /// the fastest over a whole image, in the least memory.
+    Five,
+    /// The four and the four diagonals (Hirschmüller's eight): smoother surfaces.
+    Eight,
+}
+
 /// Census semi-global matching.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -256,10 +271,13 @@ pub struct SemiGlobalMatcher {
     pub uniqueness: f32,
     /// Most left-right disagreement, pixels.
     pub lr_max_diff: f32,
-    /// Refuse to match more cost cells than this (matched pixels × disparities).
+    /// Refuse to match more cost cells than this (matched pixels × disparities; each takes
+    /// 3 bytes, 5 when matching on two threads; five paths hold no volume and ignore it).
     pub max_cells: usize,
     /// Match only pixels within this many of the needle mask (`None`: the whole region).
     pub around_mask_px: Option<u32>,
+    /// The aggregation paths.
+    pub paths: SgmPaths,
 }
 
 impl Default for SemiGlobalMatcher {
@@ -271,11 +289,13 @@ impl Default for SemiGlobalMatcher {
             lr_max_diff: 1.0,
             max_cells: 64 << 20,
             around_mask_px: Some(4),
+            paths: SgmPaths::Four,
         }
     }
 }
 
 /// The compact index of pixel `i`, if it is matched.
+#[inline(always)]
 fn slot(index: &[u32], i: usize) -> Option<usize> {
     let c = index[i];
     (c != u32::MAX).then_some(c as usize)
@@ -368,12 +388,606 @@ fn grey(image: &RgbImage, r: Rect) -> Vec<u8> {
     out
 }
 
+/// The value either side of a path's costs: a disparity outside the range never wins.
+const PAD: u16 = u16::MAX / 4;
+
+/// One step of a path (Hirschmüller 2008, eq. 13): `cur = C + min(prev, prev±1 + P1,
+/// min(prev) + P2) − min(prev)`, and added to the pixel's sum. `prev` and `cur` hold `nd`
+/// values between two [`PAD`]s, then their least value (`[nd + 2]`, kept by the step that
+/// wrote them: no second pass to find it); written over slices of equal length so that it
+/// vectorises.
+#[inline(always)]
+fn step(prev: &[u16], costs: &[u8], cur: &mut [u16], sum: &mut [u16], p1: u16, p2: u16) {
+    let nd = costs.len();
+    let (below, here, above) = (&prev[..nd], &prev[1..=nd], &prev[2..nd + 2]);
+    let best = prev[nd + 2];
+    let jump = best.saturating_add(p2);
+    let out = &mut cur[1..=nd];
+    let sum = &mut sum[..nd];
+    let mut least = u16::MAX;
+    for k in 0..nd {
+        let m = here[k]
+            .min(below[k].saturating_add(p1))
+            .min(above[k].saturating_add(p1))
+            .min(jump);
+        let v = (m - best).saturating_add(u16::from(costs[k]));
+        out[k] = v;
+        sum[k] = sum[k].saturating_add(v);
+        least = least.min(v);
+    }
+    cur[nd + 2] = least;
+}
+
+/// The first pixel of a path: its own costs.
+#[inline(always)]
+fn start(costs: &[u8], cur: &mut [u16], sum: &mut [u16]) {
+    let nd = costs.len();
+    let mut least = u16::MAX;
+    for ((o, s), &c) in cur[1..=nd].iter_mut().zip(&mut sum[..nd]).zip(costs) {
+        *o = u16::from(c);
+        *s = s.saturating_add(*o);
+        least = least.min(*o);
+    }
+    cur[nd + 2] = least;
+}
+
+/// Two views' censuses over the same rows: the left region's (`w` wide, from image column
+/// `x0`) and the right strip's (`rw` wide, columns `rx0..rx1`).
+struct Census<'a> {
+    left: &'a [u32],
+    right: &'a [u32],
+    w: usize,
+    rw: usize,
+    x0: usize,
+    rx0: usize,
+    rx1: usize,
+    dmin: usize,
+}
+
+/// Row `y`'s costs: `cost[c·nd + k]` = Hamming distance between the census of the pixel
+/// `index_row` gives slot `c` and that of the right pixel `dmin + k` to its left (left as it
+/// is, 24, where that pixel is outside the strip).
+#[inline(always)]
+fn hamming_row(c: &Census<'_>, y: usize, index_row: &[u32], nd: usize, cost: &mut [u8]) {
+    let row = &c.right[y * c.rw..(y + 1) * c.rw];
+    for x in 0..c.w {
+        let Some(slot) = slot(index_row, x) else {
+            continue;
+        };
+        let lx = c.x0 + x;
+        // d = dmin + k is inside the strip for rx0 + d ≤ lx and lx − d < rx1.
+        let Some(k1) = (lx - c.rx0).checked_sub(c.dmin).map(|k| k.min(nd - 1)) else {
+            continue;
+        };
+        let k0 = (lx + 1).saturating_sub(c.rx1 + c.dmin);
+        if k0 > k1 {
+            continue;
+        }
+        let lv = c.left[y * c.w + x];
+        // The right pixels for k0..=k1, nearest the left pixel first.
+        let right = &row[lx - c.dmin - k1 - c.rx0..=lx - c.dmin - k0 - c.rx0];
+        for (o, r) in cost[slot * nd + k0..=slot * nd + k1]
+            .iter_mut()
+            .zip(right.iter().rev())
+        {
+            *o = (lv ^ r).count_ones() as u8;
+        }
+    }
+}
+
+/// The whole cost volume (`index` maps each region pixel to its slot). Compiled also with
+/// the processor's population count.
+#[multiversion::multiversion(targets("x86_64+avx2+popcnt", "x86_64+sse4.2+popcnt"))]
+fn hamming<'a>(c: &Census<'a>, index: &[u32], nd: usize, cost: &mut [u8]) {
+    for (y, index_row) in index.chunks_exact(c.w).enumerate() {
+        hamming_row(c, y, index_row, nd, cost);
+    }
+}
+
+/// The paths that one visit of a row extends: the one along the row, and `verticals` from
+/// the row visited before (0; 1, straight; or 3, with the diagonals from columns x − 1 and
+/// x + 1), whose values are kept per column. A path restarts where the matched pixels stop.
+struct Paths {
+    stride: usize,
+    line_prev: Vec<u16>,
+    line_cur: Vec<u16>,
+    prev_rows: Vec<Vec<u16>>,
+    cur_rows: Vec<Vec<u16>>,
+    prev_live: Vec<bool>,
+    cur_live: Vec<bool>,
+}
+
+impl Paths {
+    fn new(w: usize, nd: usize, verticals: usize) -> Self {
+        // A path's values at a pixel: a pad, nd values, a pad, their least.
+        let stride = nd + 3;
+        Self {
+            stride,
+            line_prev: vec![PAD; stride],
+            line_cur: vec![PAD; stride],
+            prev_rows: vec![vec![PAD; w * stride]; verticals],
+            cur_rows: vec![vec![PAD; w * stride]; verticals],
+            prev_live: vec![false; w],
+            cur_live: vec![false; w],
+        }
+    }
+
+    /// One row, visited left to right (`forward`) or right to left; its costs and sums at
+    /// the slots `index_row` gives.
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn row(
+        &mut self,
+        cost: &[u8],
+        index_row: &[u32],
+        sum: &mut [u16],
+        nd: usize,
+        forward: bool,
+        p1: u16,
+        p2: u16,
+    ) {
+        let (w, stride) = (index_row.len(), self.stride);
+        let mut live = false;
+        for i in 0..w {
+            let x = if forward { i } else { w - 1 - i };
+            let Some(c) = slot(index_row, x) else {
+                live = false;
+                self.cur_live[x] = false;
+                continue;
+            };
+            let costs = &cost[c * nd..(c + 1) * nd];
+            let out = &mut sum[c * nd..(c + 1) * nd];
+            if live {
+                step(&self.line_prev, costs, &mut self.line_cur, out, p1, p2);
+            } else {
+                start(costs, &mut self.line_cur, out);
+            }
+            std::mem::swap(&mut self.line_prev, &mut self.line_cur);
+            live = true;
+            for (p, from) in [Some(x), x.checked_sub(1), Some(x + 1)]
+                .into_iter()
+                .take(self.prev_rows.len())
+                .enumerate()
+            {
+                let cur = &mut self.cur_rows[p][x * stride..(x + 1) * stride];
+                match from.filter(|&f| f < w && self.prev_live[f]) {
+                    Some(f) => step(
+                        &self.prev_rows[p][f * stride..(f + 1) * stride],
+                        costs,
+                        cur,
+                        out,
+                        p1,
+                        p2,
+                    ),
+                    None => start(costs, cur, out),
+                }
+            }
+            self.cur_live[x] = true;
+        }
+        if !self.prev_rows.is_empty() {
+            std::mem::swap(&mut self.prev_rows, &mut self.cur_rows);
+            std::mem::swap(&mut self.prev_live, &mut self.cur_live);
+        }
+    }
+}
+
+/// [`SemiGlobalMatcher::sweep`], compiled also for AVX2 and chosen when the processor has it
+/// (the paths' minima over 16 disparities at once).
+#[multiversion::multiversion(targets("x86_64+avx2+popcnt", "x86_64+sse4.2+popcnt"))]
+fn sweep<'a>(v: &Volume<'a>, down: bool, diagonals: bool, p1: u16, p2: u16, sum: &mut [u16]) {
+    let mut paths = Paths::new(v.w, v.nd, if diagonals { 3 } else { 1 });
+    for j in 0..v.h {
+        let y = if down { j } else { v.h - 1 - j };
+        let index_row = &v.index[y * v.w..(y + 1) * v.w];
+        paths.row(v.cost, index_row, sum, v.nd, down, p1, p2);
+    }
+}
+
+/// What deciding a row needs besides its sums: per right pixel, counted from the right at
+/// u = w − x + k for left pixel x at k (so that both run forwards), the least sum any left
+/// pixel gives it and which left pixel x (the first of a tie: the least k, as the left
+/// pixels are visited left to right; k = u + x − w); the row's winning disparities.
+struct Decider {
+    right_min: Vec<u16>,
+    right_x: Vec<u16>,
+    left_d: Vec<f32>,
+}
+
+impl Decider {
+    fn new(w: usize, nd: usize) -> Self {
+        Self {
+            right_min: vec![u16::MAX; w + nd],
+            right_x: vec![0u16; w + nd],
+            left_d: vec![f32::INFINITY; w],
+        }
+    }
+
+    /// Winner takes all, sub-pixel by a parabola, uniqueness; and the left-right check: the
+    /// right pixel a left pixel lands on must itself pick (from the same sums, over the left
+    /// pixels that could match it) a disparity within `lr_max_diff`. One row, into `out`.
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn row(
+        &mut self,
+        m: &SemiGlobalMatcher,
+        sum: &[u16],
+        index_row: &[u32],
+        x0: usize,
+        dmin: usize,
+        nd: usize,
+        out: &mut [f32],
+    ) {
+        let w = index_row.len();
+        self.right_min.fill(u16::MAX);
+        for (x, d_out) in self.left_d.iter_mut().enumerate() {
+            *d_out = f32::INFINITY;
+            let Some(c) = slot(index_row, x) else {
+                continue;
+            };
+            let s = &sum[c * nd..(c + 1) * nd];
+            let rm = &mut self.right_min[w - x..w - x + nd];
+            let rx = &mut self.right_x[w - x..w - x + nd];
+            // Written as selects over equal lengths, so that it vectorises.
+            let xv = x as u16;
+            for ((least, from), &v) in rm.iter_mut().zip(rx.iter_mut()).zip(s) {
+                let better = v < *least;
+                *from = if better { xv } else { *from };
+                *least = if better { v } else { *least };
+            }
+            // The least sum and its first k at once: one minimum over (sum << 16 | k).
+            let key = s
+                .iter()
+                .enumerate()
+                .map(|(k, &v)| (u32::from(v) << 16) | k as u32)
+                .min()
+                .unwrap_or(u32::MAX);
+            let (bv, bk) = ((key >> 16) as u16, (key & 0xFFFF) as usize);
+            let below = s[..bk.saturating_sub(1)].iter().copied().min();
+            let above = s.get(bk + 2..).and_then(|a| a.iter().copied().min());
+            let second = below.into_iter().chain(above).min().unwrap_or(u16::MAX);
+            if f32::from(second) * (1.0 - m.uniqueness) < f32::from(bv) {
+                continue;
+            }
+            let mut d = (dmin + bk) as f32;
+            if bk > 0 && bk + 1 < nd {
+                let (a, b, c) = (f32::from(s[bk - 1]), f32::from(bv), f32::from(s[bk + 1]));
+                let den = a - 2.0 * b + c;
+                if den > 0.0 {
+                    d += 0.5 * (a - c) / den;
+                }
+            }
+            *d_out = d;
+        }
+        let lowest = x0 as i64 - (dmin + nd - 1) as i64;
+        for (x, (&d, o)) in self.left_d.iter().zip(out.iter_mut()).enumerate() {
+            *o = f32::INFINITY;
+            if !d.is_finite() {
+                continue;
+            }
+            let q = (x0 + x) as i64 - d.round() as i64 - lowest;
+            let Some(u) = usize::try_from(q)
+                .ok()
+                .and_then(|q| (w + nd - 1).checked_sub(q))
+            else {
+                continue;
+            };
+            let k = u + usize::from(self.right_x[u]) - w;
+            if self.right_min[u] != u16::MAX && ((dmin + k) as f32 - d).abs() <= m.lr_max_diff {
+                *o = d;
+            }
+        }
+    }
+}
+
+/// Every row of a region decided from the whole volume's sums.
+#[allow(clippy::too_many_arguments)]
+#[multiversion::multiversion(targets("x86_64+avx2+popcnt", "x86_64+sse4.2+popcnt"))]
+fn decide(
+    m: &SemiGlobalMatcher,
+    sum: &[u16],
+    index: &[u32],
+    w: usize,
+    x0: usize,
+    dmin: usize,
+    nd: usize,
+    data: &mut [f32],
+) {
+    let mut decider = Decider::new(w, nd);
+    for (index_row, out) in index.chunks_exact(w).zip(data.chunks_exact_mut(w)) {
+        decider.row(m, sum, index_row, x0, dmin, nd, out);
+    }
+}
+
+/// [`SgmPaths::Five`]: rows top to bottom, each row's costs, its five paths (→ ←, and ↓ ↘ ↙
+/// from the row before) and its decision made before the next row, so that only a few rows
+/// are ever held (OpenCV's StereoSGBM does the same in its default mode).
+#[allow(clippy::too_many_arguments)]
+#[multiversion::multiversion(targets("x86_64+avx2+popcnt", "x86_64+sse4.2+popcnt"))]
+fn one_pass<'a>(
+    m: &SemiGlobalMatcher,
+    c: &Census<'a>,
+    active: Option<&[bool]>,
+    nd: usize,
+    data: &mut [f32],
+) {
+    let w = c.w;
+    let mut cost = vec![24u8; w * nd];
+    let mut sum = vec![0u16; w * nd];
+    let mut index_row = vec![0u32; w];
+    let mut down = Paths::new(w, nd, 3);
+    let mut back = Paths::new(w, nd, 0);
+    let mut decider = Decider::new(w, nd);
+    for (y, out) in data.chunks_exact_mut(w).enumerate() {
+        for (x, i) in index_row.iter_mut().enumerate() {
+            *i = if active.is_none_or(|a| a[y * w + x]) {
+                x as u32
+            } else {
+                u32::MAX
+            };
+        }
+        cost.fill(24);
+        hamming_row(c, y, &index_row, nd, &mut cost);
+        sum.fill(0);
+        down.row(&cost, &index_row, &mut sum, nd, true, m.p1, m.p2);
+        back.row(&cost, &index_row, &mut sum, nd, false, m.p1, m.p2);
+        decider.row(m, &sum, &index_row, c.x0, c.dmin, nd, out);
+    }
+}
+
+/// A matched region: the cost volume over its matched pixels (`index` maps a region pixel
+/// to its row of `cost`), `nd` disparities each.
+struct Volume<'a> {
+    cost: &'a [u8],
+    index: &'a [u32],
+    w: usize,
+    h: usize,
+    nd: usize,
+}
+
+impl SemiGlobalMatcher {
+    /// Dense disparity over `roi` of a rectified pair, no needle mask needed: every pixel of
+    /// the region is matched over `min_disparity..=max_disparity` (left x − right x, pixels;
+    /// the right image is searched wherever that range reaches). Invalid (occluded, not
+    /// unique, failing the left-right check, or a window past the image's edge) = +inf.
+    pub fn dense(
+        &self,
+        left: &RgbImage,
+        right: &RgbImage,
+        roi: Rect,
+        min_disparity: u32,
+        max_disparity: u32,
+        parallel: bool,
+    ) -> Result<DisparityMap, PerceptionError> {
+        let config = |message: String| Err(PerceptionError::Config { message });
+        if (left.width, left.height) != (right.width, right.height) {
+            return config(format!(
+                "the left image is {}×{} and the right {}×{}; a rectified pair has one size",
+                left.width, left.height, right.width, right.height
+            ));
+        }
+        if roi.is_empty() || roi.x1 > left.width || roi.y1 > left.height {
+            return config(format!(
+                "region {}..{} × {}..{} is not inside the {}×{} image",
+                roi.x0, roi.x1, roi.y0, roi.y1, left.width, left.height
+            ));
+        }
+        if min_disparity > max_disparity {
+            return config(format!(
+                "the disparity range {min_disparity}..{max_disparity} is empty"
+            ));
+        }
+        if min_disparity >= roi.x1 {
+            return config(format!(
+                "every disparity from {min_disparity} puts the region's pixels (x < {}) outside the right image",
+                roi.x1
+            ));
+        }
+        self.matched(
+            left,
+            right,
+            roi,
+            min_disparity,
+            max_disparity,
+            None,
+            parallel,
+        )
+    }
+
+    /// The costs aggregated along the paths one sweep of the rows takes: top to bottom
+    /// (`down`) → and ↓ (and ↘ ↙), or bottom to top ← and ↑ (and ↖ ↗), added into `sum`.
+    /// Every path of a sweep comes from the row just swept or from the pixel just visited, so
+    /// one sweep reads the cost volume and writes the sums once, row by row; a path restarts
+    /// where the matched pixels stop.
+    fn sweep(&self, v: &Volume<'_>, down: bool, sum: &mut [u16]) {
+        sweep(v, down, self.paths != SgmPaths::Four, self.p1, self.p2, sum);
+    }
+
+    /// Semi-global matching over `lroi`, of the pixels `active` says (row-major over the
+    /// region; `None`: all).
+    #[allow(clippy::too_many_arguments)]
+    fn matched(
+        &self,
+        left: &RgbImage,
+        right: &RgbImage,
+        lroi: Rect,
+        min_disparity: u32,
+        max_disparity: u32,
+        active: Option<&[bool]>,
+        parallel: bool,
+    ) -> Result<DisparityMap, PerceptionError> {
+        let (w, h) = (lroi.width() as usize, lroi.height() as usize);
+        let dmin = min_disparity as usize;
+        let nd = max_disparity.saturating_sub(min_disparity) as usize + 1;
+        // Columns and disparities are counted in 16 bits where it speeds the matching.
+        let most = usize::from(u16::MAX);
+        if w > most || nd > most {
+            return Err(PerceptionError::Config {
+                message: format!(
+                    "a region {w} pixels wide over {nd} disparities; semi-global matching takes at most {most} of each"
+                ),
+            });
+        }
+        // The right image's strip the region can match: x − d for every d.
+        let rx0 = (lroi.x0 as usize).saturating_sub(dmin + nd - 1);
+        let rx1 = (lroi.x1 as usize).saturating_sub(dmin).max(rx0 + 1);
+        let rroi = Rect {
+            x0: rx0 as u32,
+            x1: rx1 as u32,
+            ..lroi
+        };
+        let rw = rroi.width() as usize;
+        let lc = census(&grey(left, lroi), w, h);
+        let rc = census(&grey(right, rroi), rw, h);
+        let mut index = vec![u32::MAX; w * h];
+        let mut n = 0usize;
+        for (i, slot) in index.iter_mut().enumerate() {
+            if active.is_none_or(|a| a[i]) {
+                *slot = n as u32;
+                n += 1;
+            }
+        }
+        // The cost volume holds the matched pixels only (none is held in one pass).
+        if self.paths != SgmPaths::Five && n * nd > self.max_cells {
+            return Err(PerceptionError::Config {
+                message: format!(
+                    "semi-global matching of {n} pixels (of a {w}×{h} region) over {nd} disparities needs {} cost cells, more than the limit {}; give a smaller region or disparity range",
+                    n * nd,
+                    self.max_cells
+                ),
+            });
+        }
+        let census = Census {
+            left: &lc,
+            right: &rc,
+            w,
+            rw,
+            x0: lroi.x0 as usize,
+            rx0,
+            rx1,
+            dmin,
+        };
+        let mut data = vec![f32::INFINITY; w * h];
+        if self.paths == SgmPaths::Five {
+            one_pass(self, &census, active, nd, &mut data);
+            return Ok(DisparityMap { roi: lroi, data });
+        }
+        // Matching cost C(p, d): Hamming distance of the censuses (24 = no match: the
+        // right pixel x − d is outside the strip).
+        let mut cost = vec![24u8; n * nd];
+        hamming(&census, &index, nd, &mut cost);
+        let volume = Volume {
+            cost: &cost,
+            index: &index,
+            w,
+            h,
+            nd,
+        };
+        // The two sweeps run on two threads if asked.
+        let sum = if parallel {
+            let (mut a, b) = rayon::join(
+                || {
+                    let mut s = vec![0u16; cost.len()];
+                    self.sweep(&volume, true, &mut s);
+                    s
+                },
+                || {
+                    let mut s = vec![0u16; cost.len()];
+                    self.sweep(&volume, false, &mut s);
+                    s
+                },
+            );
+            for (x, y) in a.iter_mut().zip(&b) {
+                *x = x.saturating_add(*y);
+            }
+            a
+        } else {
+            let mut s = vec![0u16; cost.len()];
+            self.sweep(&volume, true, &mut s);
+            self.sweep(&volume, false, &mut s);
+            s
+        };
+        drop(cost);
+        decide(self, &sum, &index, w, lroi.x0 as usize, dmin, nd, &mut data);
+        Ok(DisparityMap { roi: lroi, data })
+    }
+}
+
 impl StereoMatcher for SemiGlobalMatcher {
     fn name(&self) -> &'static str {
         "sgm"
     }
 
     fn disparity(&self, input: &StereoInput<'_>) -> Result<DisparityMap, PerceptionError> {
+        let lroi = input.left_masks.roi;
+        let (w, h) = (lroi.width() as usize, lroi.height() as usize);
+        // Which pixels to match: all of the region, or only those within `around_mask_px`
+        // of the needle mask (a thin wire's neighbourhood is a tenth of its box).
+        let active = self
+            .around_mask_px
+            .map(|r| dilate(&input.left_masks.needle, w, h, r as usize));
+        self.matched(
+            input.left,
+            input.right,
+            lroi,
+            input.min_disparity,
+            input.max_disparity,
+            active.as_deref(),
+            input.parallel,
+        )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::segment::ColorSegmenter;
+
+    /// A textured pair whose right view is the left shifted by `d` pixels, with a grey bar.
+    fn shifted_pair(w: u32, h: u32, d: u32) -> (RgbImage, RgbImage) {
+        let tex = |x: i64, y: i64| -> [u8; 3] {
+            let v = ((x * 7919 + y * 104_729) ^ (x * y * 31)).rem_euclid(97) as u8;
+            let bar = (100..108).contains(&x) && (20..60).contains(&y);
+            if bar {
+                [170, 170, 172]
+            } else {
+                [150 + v, 60 + v / 2, 60 + v / 3]
+            }
+        };
+        let mut l = RgbImage::new(w, h);
+        let mut r = RgbImage::new(w, h);
+        for y in 0..h as i64 {
+            for x in 0..w as i64 {
+                let i = ((y * w as i64 + x) * 3) as usize;
+                l.data[i..i + 3].copy_from_slice(&tex(x, y));
+                r.data[i..i + 3].copy_from_slice(&tex(x + i64::from(d), y));
+            }
+        }
+        (l, r)
+    }
+
+    fn input<'a>(
+        l: &'a RgbImage,
+        r: &'a RgbImage,
+        lm: &'a Masks,
+        rm: &'a Masks,
+        seg: &'a ColorSegmenter,
+    ) -> StereoInput<'a> {
+        StereoInput {
+            left: l,
+            right: r,
+            left_masks: lm,
+            right_masks: rm,
+            min_disparity: 20,
+            max_disparity: 60,
+            segmenter: seg,
+            parallel: false,
+        }
+    }
+
+    /// The matcher as first written (paths walked pixel by pixel, columns for the vertical
+    /// ones, bounds checked per disparity): the oracle the row-swept, vectorised one must
+    /// equal value for value.
+    fn reference(sgm: &SemiGlobalMatcher, input: &StereoInput<'_>) -> DisparityMap {
         let lroi = input.left_masks.roi;
         let (w, h) = (lroi.width() as usize, lroi.height() as usize);
         let dmin = input.min_disparity as usize;
@@ -391,7 +1005,7 @@ impl StereoMatcher for SemiGlobalMatcher {
         let rc = census(&grey(input.right, rroi), rw, h);
         // Which pixels to match: all of the region, or only those within `around_mask_px`
         // of the needle mask (a thin wire's neighbourhood is a tenth of its box).
-        let active: Vec<bool> = match self.around_mask_px {
+        let active: Vec<bool> = match sgm.around_mask_px {
             None => vec![true; w * h],
             Some(r) => dilate(&input.left_masks.needle, w, h, r as usize),
         };
@@ -404,15 +1018,6 @@ impl StereoMatcher for SemiGlobalMatcher {
             }
         }
         // The cost volume holds the matched pixels only.
-        if n * nd > self.max_cells {
-            return Err(PerceptionError::Config {
-                message: format!(
-                    "semi-global matching of {n} pixels (of a {w}×{h} region) over {nd} disparities needs {} cost cells, more than the limit {}; give a smaller region or disparity range",
-                    n * nd,
-                    self.max_cells
-                ),
-            });
-        }
         // Matching cost C(p, d): Hamming distance of the censuses (24 = no match).
         let mut cost = vec![24u8; n * nd];
         for y in 0..h {
@@ -470,12 +1075,12 @@ impl StereoMatcher for SemiGlobalMatcher {
                             for k in 0..nd {
                                 let mut m = prev[k];
                                 if k > 0 {
-                                    m = m.min(prev[k - 1] + self.p1);
+                                    m = m.min(prev[k - 1] + sgm.p1);
                                 }
                                 if k + 1 < nd {
-                                    m = m.min(prev[k + 1] + self.p1);
+                                    m = m.min(prev[k + 1] + sgm.p1);
                                 }
-                                m = m.min(best_prev + self.p2);
+                                m = m.min(best_prev + sgm.p2);
                                 cur[k] = u16::from(costs[k]) + m - best_prev;
                             }
                         }
@@ -518,7 +1123,7 @@ impl StereoMatcher for SemiGlobalMatcher {
                 .map(|(_, &v)| v)
                 .min()
                 .unwrap_or(u16::MAX);
-            if f32::from(second) * (1.0 - self.uniqueness) < f32::from(bv) {
+            if f32::from(second) * (1.0 - sgm.uniqueness) < f32::from(bv) {
                 continue;
             }
             let mut d = (dmin + bk) as f32;
@@ -555,59 +1160,83 @@ impl StereoMatcher for SemiGlobalMatcher {
                         best = (v, k);
                     }
                 }
-                if best.0 != u16::MAX && ((dmin + best.1) as f32 - d).abs() <= self.lr_max_diff {
+                if best.0 != u16::MAX && ((dmin + best.1) as f32 - d).abs() <= sgm.lr_max_diff {
                     data[y * w + x] = d;
                 }
             }
         }
-        Ok(DisparityMap { roi: lroi, data })
+        DisparityMap { roi: lroi, data }
     }
-}
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::segment::ColorSegmenter;
-
-    /// A textured pair whose right view is the left shifted by `d` pixels, with a grey bar.
-    fn shifted_pair(w: u32, h: u32, d: u32) -> (RgbImage, RgbImage) {
-        let tex = |x: i64, y: i64| -> [u8; 3] {
-            let v = ((x * 7919 + y * 104_729) ^ (x * y * 31)).rem_euclid(97) as u8;
-            let bar = (100..108).contains(&x) && (20..60).contains(&y);
-            if bar {
-                [170, 170, 172]
-            } else {
-                [150 + v, 60 + v / 2, 60 + v / 3]
-            }
+    /// A pseudo-random textured pair, the right view shifted by a disparity that varies
+    /// with the row and the column (a slanted surface with a step), and a random mask.
+    fn slanted_pair(w: u32, h: u32, seed: u64) -> (RgbImage, RgbImage, Vec<u8>) {
+        let mut state = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+        let mut next = move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state
         };
+        let tex: Vec<u8> = (0..(w as usize + 200) * h as usize)
+            .map(|_| (next() % 200) as u8 + 20)
+            .collect();
+        let tw = w as usize + 200;
         let mut l = RgbImage::new(w, h);
         let mut r = RgbImage::new(w, h);
-        for y in 0..h as i64 {
-            for x in 0..w as i64 {
-                let i = ((y * w as i64 + x) * 3) as usize;
-                l.data[i..i + 3].copy_from_slice(&tex(x, y));
-                r.data[i..i + 3].copy_from_slice(&tex(x + i64::from(d), y));
+        for y in 0..h as usize {
+            for x in 0..w as usize {
+                let d = 20 + (x / 7 + y / 5) % 13 + if x > w as usize / 2 { 9 } else { 0 };
+                let i = (y * w as usize + x) * 3;
+                let v = tex[y * tw + x + 100];
+                l.data[i..i + 3].copy_from_slice(&[v, v / 2, v / 3]);
+                let u = tex[y * tw + x + 100 + d];
+                r.data[i..i + 3].copy_from_slice(&[u, u / 2, u / 3]);
             }
         }
-        (l, r)
+        let mask = (0..(w * h) as usize)
+            .map(|_| u8::from(next() % 5 == 0))
+            .collect();
+        (l, r, mask)
     }
 
-    fn input<'a>(
-        l: &'a RgbImage,
-        r: &'a RgbImage,
-        lm: &'a Masks,
-        rm: &'a Masks,
-        seg: &'a ColorSegmenter,
-    ) -> StereoInput<'a> {
-        StereoInput {
-            left: l,
-            right: r,
-            left_masks: lm,
-            right_masks: rm,
-            min_disparity: 20,
-            max_disparity: 60,
-            segmenter: seg,
-            parallel: false,
+    #[test]
+    fn the_row_swept_matcher_equals_the_first_one_value_for_value() {
+        let seg = ColorSegmenter::default();
+        for seed in 1..=6u64 {
+            let (l, r, needle) = slanted_pair(150, 60, seed);
+            let roi = Rect {
+                x0: 30 + seed as u32,
+                y0: 3,
+                x1: 140,
+                y1: 57,
+            };
+            let mut lm = seg.segment(&l, roi);
+            // A sparse random mask, so that paths stop and restart.
+            lm.needle = (0..roi.width() * roi.height())
+                .map(|i| needle[i as usize])
+                .collect();
+            let rm = seg.segment(&r, Rect::full(150, 60));
+            for around in [None, Some(1), Some(3)] {
+                let m = SemiGlobalMatcher {
+                    around_mask_px: around,
+                    ..SemiGlobalMatcher::default()
+                };
+                for parallel in [false, true] {
+                    let mut i = input(&l, &r, &lm, &rm, &seg);
+                    i.min_disparity = 5 * seed as u32;
+                    i.parallel = parallel;
+                    let fast = m.disparity(&i).expect("map");
+                    let slow = reference(&m, &i);
+                    assert!(fast.valid_count() > 0, "seed {seed}: nothing matched");
+                    let same = fast
+                        .data
+                        .iter()
+                        .zip(&slow.data)
+                        .all(|(a, b)| a.to_bits() == b.to_bits());
+                    assert!(same, "seed {seed}, around {around:?}: the maps differ");
+                }
+            }
         }
     }
 

@@ -5,7 +5,7 @@ pub mod fit;
 pub mod pipeline;
 pub mod segment;
 
-pub use disparity::{DisparityMap, MaskRowMatcher, SemiGlobalMatcher, StereoMatcher};
+pub use disparity::{DisparityMap, MaskRowMatcher, SemiGlobalMatcher, SgmPaths, StereoMatcher};
 pub use pipeline::{
     JawHint, NeedleEnd, NeedleHint, NeedlePipeline, PipelineEstimator, PipelineOutput,
     PipelineParams, PoseError, TissueHint,
