@@ -82,6 +82,17 @@ pub enum PerceiveCommand {
         /// Match on one thread (four and eight paths use two by default; five, one).
         #[arg(long)]
         single_thread: bool,
+        /// Dense matching: the best cost must beat the second best (more than a pixel away)
+        /// by this share, or the pixel has no answer.
+        #[arg(long, default_value_t = SemiGlobalMatcher::default().uniqueness, value_parser = parse_share)]
+        uniqueness: f32,
+        /// Dense matching: the most the left and right views' disparities may differ, pixels.
+        #[arg(long, default_value_t = SemiGlobalMatcher::default().lr_max_diff, value_parser = parse_pixels)]
+        lr_max_diff: f32,
+        /// Dense matching: check each pixel against the nearest right pixel only, not both
+        /// that its sub-pixel disparity lands between (the needle pipeline's rule).
+        #[arg(long)]
+        lr_nearest: bool,
         #[command(flatten)]
         options: PipelineOptions,
     },
@@ -207,6 +218,22 @@ fn parse_point(s: &str) -> Result<[f64; 3], String> {
         _ => Err(format!(
             "{s:?}: expected three finite numbers x,y,z in metres"
         )),
+    }
+}
+
+fn parse_share(s: &str) -> Result<f32, String> {
+    match s.trim().parse::<f32>() {
+        Ok(v) if (0.0..1.0).contains(&v) => Ok(v),
+        _ => Err(format!(
+            "{s:?}: expected a share from 0 up to (not including) 1"
+        )),
+    }
+}
+
+fn parse_pixels(s: &str) -> Result<f32, String> {
+    match s.trim().parse::<f32>() {
+        Ok(v) if v.is_finite() && v >= 0.0 => Ok(v),
+        _ => Err(format!("{s:?}: expected a number of pixels, 0 or more")),
     }
 }
 
@@ -363,6 +390,9 @@ pub fn perceive(command: PerceiveCommand) -> anyhow::Result<u8> {
             needle,
             paths,
             single_thread,
+            uniqueness,
+            lr_max_diff,
+            lr_nearest,
             options,
         } => {
             let c = calib.as_deref().map(read_calibration).transpose()?;
@@ -410,6 +440,9 @@ pub fn perceive(command: PerceiveCommand) -> anyhow::Result<u8> {
                     around_mask_px: None,
                     // 3 bytes a cell on one thread, 5 on two: at most about 1.6 or 2.7 GB.
                     max_cells: DENSE_MAX_CELLS,
+                    uniqueness,
+                    lr_max_diff,
+                    lr_either_side: !lr_nearest,
                     paths: match paths {
                         PathsArg::Four => SgmPaths::Four,
                         PathsArg::Five => SgmPaths::Five,
@@ -418,6 +451,18 @@ pub fn perceive(command: PerceiveCommand) -> anyhow::Result<u8> {
                     ..SemiGlobalMatcher::default()
                 };
                 let region = roi.unwrap_or(Rect::full(w, h));
+                // No pixel of the region matches past its right edge: searching further only
+                // costs time.
+                let hi = if hi >= region.x1 && lo < region.x1 {
+                    eprintln!(
+                        "the disparity range {lo}..{hi} is cut to {lo}..{}: no pixel left of x = {} matches farther",
+                        region.x1 - 1,
+                        region.x1
+                    );
+                    region.x1 - 1
+                } else {
+                    hi
+                };
                 sgm.dense(&l, &r, region, lo, hi, !single_thread)
                     .map_err(|e| anyhow::anyhow!("{e}"))?
             };

@@ -271,6 +271,10 @@ pub struct SemiGlobalMatcher {
     pub uniqueness: f32,
     /// Most left-right disagreement, pixels.
     pub lr_max_diff: f32,
+    /// Check a pixel against both right pixels its sub-pixel disparity lands between (as
+    /// OpenCV's StereoSGBM does), not only the nearest: dense matching's rule; the needle
+    /// pipeline was measured with the nearest.
+    pub lr_either_side: bool,
     /// Refuse to match more cost cells than this (matched pixels × disparities; each takes
     /// 3 bytes, 5 when matching on two threads; five paths hold no volume and ignore it).
     pub max_cells: usize,
@@ -287,6 +291,7 @@ impl Default for SemiGlobalMatcher {
             p2: 20,
             uniqueness: 0.05,
             lr_max_diff: 1.0,
+            lr_either_side: false,
             max_cells: 64 << 20,
             around_mask_px: Some(4),
             paths: SgmPaths::Four,
@@ -664,15 +669,24 @@ impl Decider {
             if !d.is_finite() {
                 continue;
             }
-            let q = (x0 + x) as i64 - d.round() as i64 - lowest;
-            let Some(u) = usize::try_from(q)
-                .ok()
-                .and_then(|q| (w + nd - 1).checked_sub(q))
-            else {
-                continue;
+            // The right pixel it lands on; with `lr_either_side`, the two it lands between.
+            let landing: &[f32] = if m.lr_either_side {
+                &[d.floor(), d.ceil()]
+            } else {
+                &[d.round()]
             };
-            let k = u + usize::from(self.right_x[u]) - w;
-            if self.right_min[u] != u16::MAX && ((dmin + k) as f32 - d).abs() <= m.lr_max_diff {
+            let agrees = landing.iter().any(|&dr| {
+                let q = (x0 + x) as i64 - dr as i64 - lowest;
+                let Some(u) = usize::try_from(q)
+                    .ok()
+                    .and_then(|q| (w + nd - 1).checked_sub(q))
+                else {
+                    return false;
+                };
+                let k = u + usize::from(self.right_x[u]) - w;
+                self.right_min[u] != u16::MAX && ((dmin + k) as f32 - d).abs() <= m.lr_max_diff
+            });
+            if agrees {
                 *o = d;
             }
         }
