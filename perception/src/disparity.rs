@@ -590,19 +590,17 @@ fn sweep<'a>(v: &Volume<'a>, down: bool, diagonals: bool, p1: u16, p2: u16, sum:
 
 /// What deciding a row needs besides its sums: per right pixel, counted from the right at
 /// u = w − x + k for left pixel x at k (so that both run forwards), the least sum any left
-/// pixel gives it and which left pixel x (the first of a tie: the least k, as the left
-/// pixels are visited left to right; k = u + x − w); the row's winning disparities.
+/// pixel gives it and which left pixel x (the first of a tie, the least k; k = u + x − w),
+/// as one key `sum << 16 | x`; the row's winning disparities.
 struct Decider {
-    right_min: Vec<u16>,
-    right_x: Vec<u16>,
+    right: Vec<u32>,
     left_d: Vec<f32>,
 }
 
 impl Decider {
     fn new(w: usize, nd: usize) -> Self {
         Self {
-            right_min: vec![u16::MAX; w + nd],
-            right_x: vec![0u16; w + nd],
+            right: vec![u32::MAX; w + nd],
             left_d: vec![f32::INFINITY; w],
         }
     }
@@ -623,21 +621,17 @@ impl Decider {
         out: &mut [f32],
     ) {
         let w = index_row.len();
-        self.right_min.fill(u16::MAX);
+        self.right.fill(u32::MAX);
         for (x, d_out) in self.left_d.iter_mut().enumerate() {
             *d_out = f32::INFINITY;
             let Some(c) = slot(index_row, x) else {
                 continue;
             };
             let s = &sum[c * nd..(c + 1) * nd];
-            let rm = &mut self.right_min[w - x..w - x + nd];
-            let rx = &mut self.right_x[w - x..w - x + nd];
-            // Written as selects over equal lengths, so that it vectorises.
-            let xv = x as u16;
-            for ((least, from), &v) in rm.iter_mut().zip(rx.iter_mut()).zip(s) {
-                let better = v < *least;
-                *from = if better { xv } else { *from };
-                *least = if better { v } else { *least };
+            // One minimum over (sum << 16 | x): the least sum, and the first x of a tie.
+            let x16 = x as u32;
+            for (key, &v) in self.right[w - x..w - x + nd].iter_mut().zip(s) {
+                *key = (*key).min((u32::from(v) << 16) | x16);
             }
             // The least sum and its first k at once: one minimum over (sum << 16 | k).
             let key = s
@@ -683,8 +677,9 @@ impl Decider {
                 else {
                     return false;
                 };
-                let k = u + usize::from(self.right_x[u]) - w;
-                self.right_min[u] != u16::MAX && ((dmin + k) as f32 - d).abs() <= m.lr_max_diff
+                let key = self.right[u];
+                let k = u + (key & 0xFFFF) as usize - w;
+                key >> 16 != 0xFFFF && ((dmin + k) as f32 - d).abs() <= m.lr_max_diff
             });
             if agrees {
                 *o = d;
