@@ -11,8 +11,8 @@ use stitch_cli::inputs::{self, CalibrationFile};
 use stitch_eval::own as evaluate;
 use stitch_eval::{Accuracy, FrameResult, failure_kind, percentile};
 use stitch_perception::{
-    JawHint, MaskRowMatcher, NeedleEnd, NeedlePipeline, PerceptionError, Rect, SemiGlobalMatcher,
-    SgmPaths, StereoMatcher,
+    JawHint, LeftRight, MaskRowMatcher, NeedleEnd, NeedlePipeline, PerceptionError, Rect,
+    SemiGlobalMatcher, SgmPaths, StereoMatcher,
 };
 use stitch_robot::{Needle, Pose, RgbImage, StereoCalibration};
 use stitch_sim::{CameraConfig, MockDvrk, SceneConfig, StereoRenderer, Streams};
@@ -89,10 +89,10 @@ pub enum PerceiveCommand {
         /// Dense matching: the most the left and right views' disparities may differ, pixels.
         #[arg(long, default_value_t = SemiGlobalMatcher::default().lr_max_diff, value_parser = parse_pixels)]
         lr_max_diff: f32,
-        /// Dense matching: check each pixel against the nearest right pixel only, not both
-        /// that its sub-pixel disparity lands between (the needle pipeline's rule).
-        #[arg(long)]
-        lr_nearest: bool,
+        /// Dense matching's left-right check (docs/perception.md): winners (OpenCV's),
+        /// between, or nearest (the needle pipeline's).
+        #[arg(long, value_enum, default_value_t = LeftRightArg::Winners)]
+        left_right: LeftRightArg,
         #[command(flatten)]
         options: PipelineOptions,
     },
@@ -174,6 +174,18 @@ pub enum MatcherKind {
 
 /// The most cost cells (pixels × disparities) `perceive disparity` matches densely.
 pub const DENSE_MAX_CELLS: usize = 1 << 29;
+
+/// The left-right check's reading of the right view.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum LeftRightArg {
+    /// The least winning sum landing on a right pixel decides it; both right pixels must
+    /// disagree (OpenCV's StereoSGBM's check).
+    Winners,
+    /// Every left pixel's sums decide a right pixel; either right pixel may agree.
+    Between,
+    /// As between, read at the nearest right pixel only (the needle pipeline's).
+    Nearest,
+}
 
 /// Semi-global matching's aggregation paths.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -392,7 +404,7 @@ pub fn perceive(command: PerceiveCommand) -> anyhow::Result<u8> {
             single_thread,
             uniqueness,
             lr_max_diff,
-            lr_nearest,
+            left_right,
             options,
         } => {
             let c = calib.as_deref().map(read_calibration).transpose()?;
@@ -442,7 +454,11 @@ pub fn perceive(command: PerceiveCommand) -> anyhow::Result<u8> {
                     max_cells: DENSE_MAX_CELLS,
                     uniqueness,
                     lr_max_diff,
-                    lr_either_side: !lr_nearest,
+                    left_right: match left_right {
+                        LeftRightArg::Winners => LeftRight::Winners,
+                        LeftRightArg::Between => LeftRight::Between,
+                        LeftRightArg::Nearest => LeftRight::Nearest,
+                    },
                     paths: match paths {
                         PathsArg::Four => SgmPaths::Four,
                         PathsArg::Five => SgmPaths::Five,

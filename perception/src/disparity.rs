@@ -259,6 +259,25 @@ pub enum SgmPaths {
     Eight,
 }
 
+/// The left-right check: a pixel's disparity must agree, within `lr_max_diff`, with the
+/// disparity the right view picks where it lands.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum LeftRight {
+    /// The right pixel picks the least sum over every left pixel that could match it
+    /// (Hirschmüller 2008), read at the nearest right pixel: the needle pipeline's rule.
+    #[default]
+    Nearest,
+    /// The same right view, read at both right pixels the sub-pixel disparity lands
+    /// between; either may agree.
+    Between,
+    /// The right pixel takes the disparity of the left pixel whose winning (unique) sum is
+    /// least among those landing on it, and a right pixel no winner lands on refuses
+    /// nothing; both right pixels the disparity lands between must disagree to refuse it
+    /// (OpenCV's StereoSGBM's check): dense matching's default.
+    Winners,
+}
+
 /// Census semi-global matching.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -271,10 +290,8 @@ pub struct SemiGlobalMatcher {
     pub uniqueness: f32,
     /// Most left-right disagreement, pixels.
     pub lr_max_diff: f32,
-    /// Check a pixel against both right pixels its sub-pixel disparity lands between (as
-    /// OpenCV's StereoSGBM does), not only the nearest: dense matching's rule; the needle
-    /// pipeline was measured with the nearest.
-    pub lr_either_side: bool,
+    /// How the left-right check reads the right view.
+    pub left_right: LeftRight,
     /// Refuse to match more cost cells than this (matched pixels × disparities; each takes
     /// 3 bytes, 5 when matching on two threads; five paths hold no volume and ignore it).
     pub max_cells: usize,
@@ -291,7 +308,7 @@ impl Default for SemiGlobalMatcher {
             p2: 20,
             uniqueness: 0.05,
             lr_max_diff: 1.0,
-            lr_either_side: false,
+            left_right: LeftRight::Nearest,
             max_cells: 64 << 20,
             around_mask_px: Some(4),
             paths: SgmPaths::Four,
@@ -630,8 +647,10 @@ impl Decider {
             let s = &sum[c * nd..(c + 1) * nd];
             // One minimum over (sum << 16 | x): the least sum, and the first x of a tie.
             let x16 = x as u32;
-            for (key, &v) in self.right[w - x..w - x + nd].iter_mut().zip(s) {
-                *key = (*key).min((u32::from(v) << 16) | x16);
+            if m.left_right != LeftRight::Winners {
+                for (key, &v) in self.right[w - x..w - x + nd].iter_mut().zip(s) {
+                    *key = (*key).min((u32::from(v) << 16) | x16);
+                }
             }
             // The least sum and its first k at once: one minimum over (sum << 16 | k).
             let key = s
@@ -646,6 +665,10 @@ impl Decider {
             let second = below.into_iter().chain(above).min().unwrap_or(u16::MAX);
             if f32::from(second) * (1.0 - m.uniqueness) < f32::from(bv) {
                 continue;
+            }
+            if m.left_right == LeftRight::Winners {
+                let key = &mut self.right[w - x + bk];
+                *key = (*key).min((u32::from(bv) << 16) | x16);
             }
             let mut d = (dmin + bk) as f32;
             if bk > 0 && bk + 1 < nd {
@@ -663,24 +686,33 @@ impl Decider {
             if !d.is_finite() {
                 continue;
             }
-            // The right pixel it lands on; with `lr_either_side`, the two it lands between.
-            let landing: &[f32] = if m.lr_either_side {
-                &[d.floor(), d.ceil()]
-            } else {
+            // The right pixel it lands on, or the two it lands between.
+            let landing: &[f32] = if m.left_right == LeftRight::Nearest {
                 &[d.round()]
+            } else {
+                &[d.floor(), d.ceil()]
             };
-            let agrees = landing.iter().any(|&dr| {
-                let q = (x0 + x) as i64 - dr as i64 - lowest;
+            // Per right pixel: no pick there, or the pick agrees.
+            let check = |dr: &f32| -> (bool, bool) {
+                let q = (x0 + x) as i64 - *dr as i64 - lowest;
                 let Some(u) = usize::try_from(q)
                     .ok()
                     .and_then(|q| (w + nd - 1).checked_sub(q))
                 else {
-                    return false;
+                    return (true, false);
                 };
                 let key = self.right[u];
+                if key >> 16 == 0xFFFF {
+                    return (true, false);
+                }
                 let k = u + (key & 0xFFFF) as usize - w;
-                key >> 16 != 0xFFFF && ((dmin + k) as f32 - d).abs() <= m.lr_max_diff
-            });
+                (false, ((dmin + k) as f32 - d).abs() <= m.lr_max_diff)
+            };
+            let agrees = if m.left_right == LeftRight::Winners {
+                landing.iter().map(check).any(|(none, ok)| none || ok)
+            } else {
+                landing.iter().map(check).any(|(_, ok)| ok)
+            };
             if agrees {
                 *o = d;
             }

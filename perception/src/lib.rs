@@ -5,7 +5,9 @@ pub mod fit;
 pub mod pipeline;
 pub mod segment;
 
-pub use disparity::{DisparityMap, MaskRowMatcher, SemiGlobalMatcher, SgmPaths, StereoMatcher};
+pub use disparity::{
+    DisparityMap, LeftRight, MaskRowMatcher, SemiGlobalMatcher, SgmPaths, StereoMatcher,
+};
 pub use pipeline::{
     JawHint, NeedleEnd, NeedleHint, NeedlePipeline, PipelineEstimator, PipelineOutput,
     PipelineParams, PoseError, TissueHint,
