@@ -606,9 +606,10 @@ fn sweep<'a>(v: &Volume<'a>, down: bool, diagonals: bool, p1: u16, p2: u16, sum:
 }
 
 /// What deciding a row needs besides its sums: per right pixel, counted from the right at
-/// u = w − x + k for left pixel x at k (so that both run forwards), the least sum any left
-/// pixel gives it and which left pixel x (the first of a tie, the least k; k = u + x − w),
-/// as one key `sum << 16 | x`; the row's winning disparities.
+/// u = w − x + k for left pixel x at k (so that both run forwards), the least sum a left
+/// pixel gives it (any sum, or only winners: [`LeftRight`]) and which left pixel x (the
+/// first of a tie, the least k; k = u + x − w), as one key `sum << 16 | x`; the row's
+/// winning disparities.
 struct Decider {
     right: Vec<u32>,
     left_d: Vec<f32>,
@@ -623,8 +624,8 @@ impl Decider {
     }
 
     /// Winner takes all, sub-pixel by a parabola, uniqueness; and the left-right check: the
-    /// right pixel a left pixel lands on must itself pick (from the same sums, over the left
-    /// pixels that could match it) a disparity within `lr_max_diff`. One row, into `out`.
+    /// right pixel a left pixel lands on must itself pick a disparity within `lr_max_diff`,
+    /// read as [`LeftRight`] says. One row, into `out`.
     #[inline(always)]
     #[allow(clippy::too_many_arguments)]
     fn row(
