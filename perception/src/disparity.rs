@@ -1314,6 +1314,65 @@ mod tests {
     }
 
     #[test]
+    fn dense_matching_recovers_a_uniform_shift_along_any_paths_and_check() {
+        let (l, r) = shifted_pair(200, 80, 37);
+        for paths in [SgmPaths::Four, SgmPaths::Five, SgmPaths::Eight] {
+            for left_right in [LeftRight::Nearest, LeftRight::Between, LeftRight::Winners] {
+                let m = SemiGlobalMatcher {
+                    around_mask_px: None,
+                    paths,
+                    left_right,
+                    ..SemiGlobalMatcher::default()
+                };
+                for parallel in [false, true] {
+                    let map = m
+                        .dense(&l, &r, Rect::full(200, 80), 20, 60, parallel)
+                        .expect("map");
+                    // Scored where a match exists (x ≥ 37 + the census border) and away
+                    // from the rows the census cannot see.
+                    let (mut seen, mut right) = (0, 0);
+                    for y in 2..78 {
+                        for x in 42..198 {
+                            seen += 1;
+                            right +=
+                                usize::from(map.at(x, y).is_some_and(|d| (d - 37.0).abs() < 0.5));
+                        }
+                    }
+                    let what =
+                        format!("{paths:?} {left_right:?} parallel {parallel}: {right} of {seen}");
+                    assert!(right * 100 >= seen * 95, "{what}");
+                }
+            }
+        }
+        // What it refuses, with the reason.
+        let m = SemiGlobalMatcher::default();
+        let e = m
+            .dense(&l, &r, Rect::full(200, 80), 60, 20, false)
+            .expect_err("empty");
+        assert!(e.to_string().contains("is empty"), "{e}");
+        let e = m.dense(
+            &l,
+            &r,
+            Rect {
+                x0: 0,
+                y0: 0,
+                x1: 300,
+                y1: 80,
+            },
+            0,
+            20,
+            false,
+        );
+        assert!(e.expect_err("outside").to_string().contains("not inside"));
+        let e = m.dense(&l, &r, Rect::full(200, 80), 200, 220, false);
+        assert!(
+            e.expect_err("past")
+                .to_string()
+                .contains("outside the right image")
+        );
+    }
+
+    #[test]
     fn mask_rows_match_the_bar_at_its_shift() {
         let (l, r) = shifted_pair(200, 80, 37);
         let seg = ColorSegmenter::default();
