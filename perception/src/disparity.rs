@@ -880,24 +880,6 @@ impl SemiGlobalMatcher {
         let rw = rroi.width() as usize;
         let lc = census(&grey(left, lroi), w, h);
         let rc = census(&grey(right, rroi), rw, h);
-        let mut index = vec![u32::MAX; w * h];
-        let mut n = 0usize;
-        for (i, slot) in index.iter_mut().enumerate() {
-            if active.is_none_or(|a| a[i]) {
-                *slot = n as u32;
-                n += 1;
-            }
-        }
-        // The cost volume holds the matched pixels only (none is held in one pass).
-        if self.paths != SgmPaths::Five && n * nd > self.max_cells {
-            return Err(PerceptionError::Config {
-                message: format!(
-                    "semi-global matching of {n} pixels (of a {w}×{h} region) over {nd} disparities needs {} cost cells, more than the limit {}; give a smaller region or disparity range",
-                    n * nd,
-                    self.max_cells
-                ),
-            });
-        }
         let census = Census {
             left: &lc,
             right: &rc,
@@ -910,8 +892,27 @@ impl SemiGlobalMatcher {
         };
         let mut data = vec![f32::INFINITY; w * h];
         if self.paths == SgmPaths::Five {
+            // One pass indexes each row itself and holds no cost volume.
             one_pass(self, &census, active, nd, &mut data);
             return Ok(DisparityMap { roi: lroi, data });
+        }
+        let mut index = vec![u32::MAX; w * h];
+        let mut n = 0usize;
+        for (i, slot) in index.iter_mut().enumerate() {
+            if active.is_none_or(|a| a[i]) {
+                *slot = n as u32;
+                n += 1;
+            }
+        }
+        // The cost volume holds the matched pixels only.
+        if n * nd > self.max_cells {
+            return Err(PerceptionError::Config {
+                message: format!(
+                    "semi-global matching of {n} pixels (of a {w}×{h} region) over {nd} disparities needs {} cost cells, more than the limit {}; give a smaller region or disparity range",
+                    n * nd,
+                    self.max_cells
+                ),
+            });
         }
         // Matching cost C(p, d): Hamming distance of the censuses (24 = no match: the
         // right pixel x − d is outside the strip).
