@@ -10,6 +10,7 @@ mod record;
 mod replay;
 #[cfg(feature = "ros2")]
 mod ros2;
+mod segmenter;
 mod show;
 mod trials;
 
@@ -108,6 +109,11 @@ enum Command {
         /// pipeline.
         #[arg(long, value_enum, default_value_t = PerceptionKind::Model)]
         perception: PerceptionKind,
+        /// With --perception pipeline: the pipeline's segmenter, classical (colour rules),
+        /// onnx (the built-in U-Net; a stitch built with --features onnx) or onnx:FILE (a
+        /// model keeping the contract in docs/perception.md).
+        #[arg(long, default_value = "classical")]
+        segmenter: segmenter::SegmenterChoice,
         /// The mock's scene, models and faults (TOML; see docs/mock-dvrk.md). Without it,
         /// the defaults.
         #[arg(long)]
@@ -172,7 +178,7 @@ enum Command {
     /// and seed, and say "identical" or where it first diverges (see docs/journal.md).
     #[command(after_help = EXIT_CODES)]
     Replay(replay::ReplayArgs),
-    /// Benchmarks: `stitch bench perception`, `stitch bench ros2`.
+    /// Benchmarks: `stitch bench perception`, `stitch bench segmentation`, `stitch bench ros2`.
     Bench {
         #[command(subcommand)]
         command: perceive::BenchCommand,
@@ -209,14 +215,27 @@ impl PerceptionKind {
             .find(|k| k.name() == name)
     }
 
-    /// The mock's perception of this kind, configured by `mock`.
-    pub(crate) fn of(self, mock: &MockConfig) -> MockPerception {
-        match self {
+    /// The mock's perception of this kind, configured by `mock`, the pipeline's segmenter
+    /// `segmenter` (loaded here; only the pipeline has one).
+    pub(crate) fn of(
+        self,
+        mock: &MockConfig,
+        segmenter: &segmenter::SegmenterChoice,
+    ) -> anyhow::Result<MockPerception> {
+        if self != Self::Pipeline && *segmenter != segmenter::SegmenterChoice::Classical {
+            anyhow::bail!(
+                "--segmenter {segmenter}: only the stereo pipeline segments images; add \
+                 --perception pipeline"
+            );
+        }
+        Ok(match self {
             Self::Model => MockPerception::Model(mock.sensing),
             Self::Perfect => MockPerception::Model(SensingConfig::perfect()),
-            Self::Pipeline => MockPerception::Pipeline(Box::new(mock.camera.clone())),
+            Self::Pipeline => {
+                MockPerception::Pipeline(Box::new(mock.camera.clone()), segmenter.load_learned()?)
+            }
             Self::Fitted => MockPerception::Model(SensingConfig::fitted_to_pipeline()),
-        }
+        })
     }
 }
 
@@ -372,6 +391,7 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
             skip_validation,
             wound,
             perception,
+            segmenter,
             mock_config,
             dvrk_config,
             domain_id,
@@ -412,6 +432,7 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
                         mock_config: mock_config.as_deref(),
                         outcomes: outcomes.as_deref(),
                         perception: perception.name(),
+                        segmenter: &segmenter,
                         wound: &spec,
                         loaded: &loaded,
                         frames_hz: record_frames,
@@ -437,7 +458,7 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
                     run_scripted(&loaded, seed, schedule, rec)?
                 }
                 RobotKind::Ros2 | RobotKind::Mock => {
-                    let perception = perception.of(&mock);
+                    let perception = perception.of(&mock, &segmenter)?;
                     if robot == RobotKind::Ros2 {
                         let on = Ros2Run {
                             recorder: rec,

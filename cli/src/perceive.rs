@@ -17,6 +17,8 @@ use stitch_perception::{
 use stitch_robot::{Needle, Pose, RgbImage, StereoCalibration};
 use stitch_sim::{CameraConfig, MockDvrk, SceneConfig, StereoRenderer, Streams};
 
+use crate::segmenter::SegmenterChoice;
+
 /// Exit code of `perceive needle` when the pipeline gives a typed failure instead of a pose.
 pub const NO_ESTIMATE: u8 = 6;
 
@@ -114,6 +116,36 @@ pub enum PerceiveCommand {
         #[arg(long, value_enum, default_value_t = EvalSet::Own)]
         set: EvalSet,
     },
+    /// Labelled crops around the needle, to train or test a learned segmenter on: for each
+    /// view with the needle in it, NNNNN.png (the needle's box grown by 24 px) and
+    /// NNNNN-labels.png (grey, one byte a pixel: 0 background, 1 needle, 2 thread,
+    /// 3 instrument). See docs/perception.md, "A learned segmenter".
+    Dataset {
+        /// Directory to write the crops into (made if missing).
+        #[arg(long)]
+        out: PathBuf,
+        /// Which frames: training (the mock's renderer under randomised cameras, both
+        /// views), own or independent (the evaluation sets' left views).
+        #[arg(long, value_enum, default_value_t = DatasetKind::Training)]
+        set: DatasetKind,
+        /// Scenes to render.
+        #[arg(long, default_value_t = 400)]
+        frames: usize,
+        /// Seed of the scenes, cameras and noise.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+    },
+}
+
+/// Which frames `perceive dataset` writes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum DatasetKind {
+    /// The mock's renderer under randomised cameras, noise, defocus and light.
+    Training,
+    /// The own evaluation set.
+    Own,
+    /// The independent evaluation set (a ray tracer; a second or two a frame).
+    Independent,
 }
 
 #[derive(Debug, Subcommand)]
@@ -146,6 +178,29 @@ pub enum BenchCommand {
         /// Matchers to measure (the default pipeline uses sgm).
         #[arg(long, value_enum, value_delimiter = ',', default_values_t = [MatcherKind::Sgm, MatcherKind::MaskRow])]
         matchers: Vec<MatcherKind>,
+        /// The pipeline's segmenter: classical, onnx or onnx:FILE (as `perceive needle`).
+        #[arg(long, default_value = "classical")]
+        segmenter: SegmenterChoice,
+    },
+    /// Segmenters against the truth: needle and thread intersection over union on the
+    /// regions around the needle, and time per region, on the own set and the independent
+    /// set (docs/perception.md, "A learned segmenter").
+    Segmentation {
+        /// Views of the own set (the mock's renderer), left images.
+        #[arg(long, default_value_t = 200)]
+        frames: usize,
+        /// Views of the independent set (the independent ray tracer), left images.
+        #[arg(long, default_value_t = 100)]
+        independent_frames: usize,
+        /// Seed of both sets.
+        #[arg(long, default_value_t = 2)]
+        seed: u64,
+        /// Segmenters to compare: classical, onnx, onnx:FILE.
+        #[arg(long, value_delimiter = ',', default_values_t = [SegmenterChoice::Classical])]
+        segmenters: Vec<SegmenterChoice>,
+        /// Print JSON instead of a table.
+        #[arg(long)]
+        json: bool,
     },
     /// `servo_cp` streamed over ROS 2 (real DDS on loopback) to a sim-node in this process:
     /// one-way latency at 1 kHz against a 100 Hz baseline.
@@ -203,6 +258,11 @@ pub struct PipelineOptions {
     /// The disparity matcher.
     #[arg(long, value_enum, default_value_t = MatcherKind::Sgm)]
     matcher: MatcherKind,
+    /// The segmenter: classical (colour rules), onnx (the built-in U-Net; a stitch built
+    /// with --features onnx) or onnx:FILE (a model keeping the contract in
+    /// docs/perception.md).
+    #[arg(long, default_value = "classical")]
+    segmenter: SegmenterChoice,
     /// Needle radius, mm.
     #[arg(long, default_value_t = 12.0)]
     needle_radius_mm: f64,
@@ -325,6 +385,9 @@ fn pipeline(
     let needle = Needle::new(options.needle_radius_mm * 1e-3)?;
     let mut p = NeedlePipeline::classical(calibration, needle)?;
     p.matcher = matcher(options.matcher);
+    if let Some(s) = options.segmenter.load_learned()? {
+        p.segmenter = Box::new(s);
+    }
     Ok(p)
 }
 
@@ -506,6 +569,42 @@ pub fn perceive(command: PerceiveCommand) -> anyhow::Result<u8> {
             eprintln!("matched in {:.2} ms", took.as_secs_f64() * 1e3);
             Ok(crate::exit::OK)
         }
+        PerceiveCommand::Dataset {
+            out,
+            set,
+            frames,
+            seed,
+        } => {
+            use stitch_eval::segmentation;
+            let (renderer, world) = mock_renderer(seed)?;
+            let phantom = world.phantom_view();
+            let views = match set {
+                DatasetKind::Training => segmentation::training_views(&phantom, frames, seed)
+                    .map_err(anyhow::Error::msg)?,
+                DatasetKind::Own => segmentation::own_views(&renderer, &phantom, frames, seed),
+                DatasetKind::Independent => segmentation::independent_views(frames, seed),
+            };
+            std::fs::create_dir_all(&out)
+                .with_context(|| format!("cannot make {}", out.display()))?;
+            let mut written = 0;
+            for v in &views {
+                let Some(roi) = v.roi else { continue };
+                let (image, labels) = v.crop(roi);
+                write_png(&out.join(format!("{written:05}.png")), &image)?;
+                let path = out.join(format!("{written:05}-labels.png"));
+                image::GrayImage::from_raw(image.width, image.height, labels)
+                    .context("label buffer of the wrong size")?
+                    .save_with_format(&path, image::ImageFormat::Png)
+                    .with_context(|| format!("cannot write {}", path.display()))?;
+                written += 1;
+            }
+            eprintln!(
+                "wrote {written} labelled crops ({} views without the needle left out) to {}",
+                views.len() - written,
+                out.display()
+            );
+            Ok(0)
+        }
         PerceiveCommand::Render {
             out,
             seed,
@@ -669,10 +768,21 @@ pub fn bench(command: BenchCommand) -> anyhow::Result<u8> {
         details,
         render_cache,
         matchers,
+        segmenter,
     } = command
     else {
-        anyhow::bail!("not a perception benchmark");
+        return match command {
+            BenchCommand::Segmentation {
+                frames,
+                independent_frames,
+                seed,
+                segmenters,
+                json,
+            } => bench_segmentation(frames, independent_frames, seed, &segmenters, json),
+            _ => anyhow::bail!("not a perception benchmark"),
+        };
     };
+    let learned = segmenter.load_learned()?;
     if let Some(d) = &details {
         std::fs::create_dir_all(d).with_context(|| format!("cannot create {}", d.display()))?;
     }
@@ -721,6 +831,9 @@ pub fn bench(command: BenchCommand) -> anyhow::Result<u8> {
                     NeedlePipeline::classical(renderer.calibration().clone(), Needle::default())?;
                 p.matcher = matcher(m);
                 p.parallel = parallel;
+                if let Some(s) = &learned {
+                    p.segmenter = Box::new(s.clone());
+                }
                 let results = evaluate::run(&p, &renderer, &samples, seed, hinted);
                 let r = row(EvalSet::Own, m, parallel, hinted, &results);
                 record(EvalSet::Own, &mut rows, r, &results)?;
@@ -738,9 +851,13 @@ pub fn bench(command: BenchCommand) -> anyhow::Result<u8> {
         let makers: Vec<Box<stitch_eval::independent::MakePipeline>> = matchers
             .iter()
             .map(|&m| -> Box<stitch_eval::independent::MakePipeline> {
+                let learned = learned.clone();
                 Box::new(move |c: &StereoCalibration| {
                     let mut p = NeedlePipeline::classical(c.clone(), Needle::default())?;
                     p.matcher = matcher(m);
+                    if let Some(s) = &learned {
+                        p.segmenter = Box::new(s.clone());
+                    }
                     Ok(p)
                 })
             })
@@ -762,7 +879,11 @@ pub fn bench(command: BenchCommand) -> anyhow::Result<u8> {
         serde_json::to_writer_pretty(&mut out, &rows)?;
         writeln!(out)?;
     } else {
-        write!(out, "{}", tables(&rows, frames, independent_frames, seed))?;
+        write!(
+            out,
+            "{}",
+            tables(&rows, frames, independent_frames, seed, &segmenter)
+        )?;
     }
     Ok(crate::exit::OK)
 }
@@ -828,9 +949,15 @@ fn row(
     }
 }
 
-fn tables(rows: &[BenchRow], frames: usize, independent_frames: usize, seed: u64) -> String {
+fn tables(
+    rows: &[BenchRow],
+    frames: usize,
+    independent_frames: usize,
+    seed: u64,
+    segmenter: &SegmenterChoice,
+) -> String {
     let mut s = format!(
-        "Stereo needle pipeline, seed {seed}, {} cores\n",
+        "Stereo needle pipeline, seed {seed}, {segmenter} segmenter, {} cores\n",
         std::thread::available_parallelism().map_or(1, |n| n.get())
     );
     for set in [EvalSet::Own, EvalSet::Independent] {
@@ -918,4 +1045,101 @@ fn set_tables(rows: &[&BenchRow]) -> String {
         );
     }
     s
+}
+
+#[derive(Debug, Serialize)]
+struct SegmentationRow {
+    set: EvalSet,
+    segmenter: String,
+    views: usize,
+    needle_iou: f64,
+    thread_iou: f64,
+    region_px_median: f64,
+    time: Latency,
+}
+
+/// `stitch bench segmentation`: each segmenter on the same views' regions.
+fn bench_segmentation(
+    frames: usize,
+    independent_frames: usize,
+    seed: u64,
+    segmenters: &[SegmenterChoice],
+    json: bool,
+) -> anyhow::Result<u8> {
+    use stitch_eval::segmentation;
+    let loaded = segmenters
+        .iter()
+        .map(|c| c.load().map(|s| (c.to_string(), s)))
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    let started = Instant::now();
+    let (renderer, world) = mock_renderer(seed)?;
+    let phantom = world.phantom_view();
+    let mut sets = Vec::new();
+    if frames > 0 {
+        sets.push((
+            EvalSet::Own,
+            segmentation::own_views(&renderer, &phantom, frames, seed),
+        ));
+        eprintln!(
+            "own set: {frames} views rendered, {:.1} s",
+            started.elapsed().as_secs_f64()
+        );
+    }
+    if independent_frames > 0 {
+        sets.push((
+            EvalSet::Independent,
+            segmentation::independent_views(independent_frames, seed),
+        ));
+        eprintln!(
+            "independent set: {independent_frames} views rendered, {:.1} s",
+            started.elapsed().as_secs_f64()
+        );
+    }
+    let mut rows = Vec::new();
+    for (set, views) in &sets {
+        for (name, seg) in &loaded {
+            let s = segmentation::score(seg, views).with_context(|| format!("segmenter {name}"))?;
+            let mut px: Vec<f64> = s.pixels.iter().map(|&p| p as f64).collect();
+            px.sort_by(f64::total_cmp);
+            rows.push(SegmentationRow {
+                set: *set,
+                segmenter: name.clone(),
+                views: s.views,
+                needle_iou: s.needle.iou(),
+                thread_iou: s.thread.iou(),
+                region_px_median: percentile(&px, 0.5),
+                time: latency(s.times.iter().map(Duration::as_secs_f64).collect()),
+            });
+        }
+    }
+    let mut out = std::io::stdout().lock();
+    if json {
+        serde_json::to_writer_pretty(&mut out, &rows)?;
+        writeln!(out)?;
+        return Ok(0);
+    }
+    writeln!(
+        out,
+        "Segmentation against the truth, seed {seed}: the needle's region (its box + {} px) of each left view; IoU pooled over the views; time per region on one thread\n",
+        segmentation::MARGIN_PX
+    )?;
+    writeln!(
+        out,
+        "| set | segmenter | views | needle IoU | thread IoU | region px (median) | ms per region (median / p95) |\n|---|---|---|---|---|---|---|"
+    )?;
+    for r in &rows {
+        writeln!(
+            out,
+            "| {} | {} | {} | {:.3} | {:.3} | {:.0} | {:.2} / {:.2} |",
+            set_name(r.set),
+            r.segmenter,
+            r.views,
+            r.needle_iou,
+            r.thread_iou,
+            r.region_px_median,
+            r.time.median_ms,
+            r.time.p95_ms
+        )?;
+    }
+    Ok(0)
 }

@@ -31,6 +31,8 @@ pub struct RunSettings<'a> {
     pub outcomes: Option<&'a Path>,
     /// `--perception`.
     pub perception: &'static str,
+    /// `--segmenter`.
+    pub segmenter: &'a crate::segmenter::SegmenterChoice,
     /// The wound the plan was evaluated against.
     pub wound: &'a WoundSpec,
     /// The plan as evaluated.
@@ -46,6 +48,7 @@ pub fn run_info(s: &RunSettings<'_>) -> anyhow::Result<RunInfo> {
     };
     let mut settings = BTreeMap::new();
     settings.insert("perception".to_string(), s.perception.to_string());
+    settings.insert("segmenter".to_string(), s.segmenter.to_string());
     settings.insert("wound".to_string(), serde_json::to_string(s.wound)?);
     settings.insert(
         "steps_per_throw".to_string(),

@@ -197,6 +197,13 @@ pub fn replay(args: &ReplayArgs) -> anyhow::Result<u8> {
             rec.meta["perception"]
         )
     })?;
+    // Recordings made before --segmenter existed used the classical one.
+    let segmenter: crate::segmenter::SegmenterChoice = match rec.meta.get("segmenter") {
+        Some(s) => s.parse().map_err(|e: String| {
+            anyhow::anyhow!("{}: the recorded segmenter: {e}", args.file.display())
+        })?,
+        None => crate::segmenter::SegmenterChoice::Classical,
+    };
     let frames_hz: f64 = rec
         .get("record_frames_hz")?
         .parse()
@@ -228,7 +235,7 @@ pub fn replay(args: &ReplayArgs) -> anyhow::Result<u8> {
         _ => crate::run_mock(
             &loaded,
             &mock.scene,
-            perception.of(&mock),
+            perception.of(&mock, &segmenter)?,
             seed_value,
             Some(&recorder),
         ),

@@ -16,6 +16,7 @@ use stitch_engine::{Loaded, Report, Runner};
 use stitch_eval::percentile;
 use stitch_perception::{
     NeedleEstimate, NeedleEstimator, NeedlePipeline, PerceptionError, PipelineEstimator,
+    SharedSegmenter,
 };
 use stitch_primitives::{
     FailureKind, MockPerception, Observer, PassObservation, Rig, RobotPrimitives, mock_layout,
@@ -255,6 +256,7 @@ fn sim_camera(
     ros: &Ros2Options,
     config: &DvrkConfig,
     camera: &CameraConfig,
+    segmenter: Option<SharedSegmenter>,
     scene: &SceneConfig,
     oracle: &Arc<Oracle>,
     clock: Arc<dyn Clock>,
@@ -272,8 +274,11 @@ fn sim_camera(
         Duration::from_secs_f64(config.connect_timeout_s),
     )
     .context("cannot connect to the stereo camera")?;
-    let pipeline = NeedlePipeline::classical(camera.calibration().clone(), scene.needle)
+    let mut pipeline = NeedlePipeline::classical(camera.calibration().clone(), scene.needle)
         .context("the stereo camera's calibration")?;
+    if let Some(s) = segmenter {
+        pipeline.segmenter = Box::new(s);
+    }
     Ok((camera, pipeline))
 }
 
@@ -310,9 +315,11 @@ pub fn run_ros2(
     oracle.watch(Box::new(move || {
         weak.upgrade().map_or(Ok(()), |d| d.alive(bound))
     }));
-    let (sensing, camera) = match perception {
-        MockPerception::Model(sensing) => (sensing, None),
-        MockPerception::Pipeline(camera) => (SensingConfig::default(), Some(camera)),
+    let (sensing, camera, segmenter) = match perception {
+        MockPerception::Model(sensing) => (sensing, None, None),
+        MockPerception::Pipeline(camera, segmenter) => {
+            (SensingConfig::default(), Some(camera), segmenter)
+        }
     };
     oracle
         .call(Call::Reset {
@@ -331,7 +338,8 @@ pub fn run_ros2(
     let frames = tap.as_ref().and_then(stitch_recorder::Tap::frames);
     let estimator: Box<dyn NeedleEstimator> = match &camera {
         Some(c) => {
-            let (camera, pipeline) = sim_camera(ros, config, c, scene, &oracle, clock.clone())?;
+            let (camera, pipeline) =
+                sim_camera(ros, config, c, segmenter, scene, &oracle, clock.clone())?;
             Box::new(PipelineEstimator::new(
                 ObservedCamera::new(camera, frames),
                 pipeline,
@@ -445,12 +453,12 @@ pub fn run_real(
     config: &DvrkConfig,
     recorder: Option<&Recorder>,
 ) -> anyhow::Result<Report> {
-    if !matches!(perception, MockPerception::Pipeline(_)) {
+    let MockPerception::Pipeline(_, segmenter) = perception else {
         anyhow::bail!(
             "--no-simulator: a real dVRK has no noise model to estimate the needle with; add \
              --perception pipeline (the stereo pipeline on the camera's topics)"
         );
-    }
+    };
     let Some(hand_eye) = &config.camera.camera_to_robot else {
         anyhow::bail!(
             "--no-simulator: set camera.camera_to_robot in --dvrk-config (the rectified left \
@@ -470,8 +478,11 @@ pub fn run_real(
         timeout,
     )
     .context("cannot connect to the stereo camera")?;
-    let pipeline = NeedlePipeline::classical(camera.calibration().clone(), scene.needle)
+    let mut pipeline = NeedlePipeline::classical(camera.calibration().clone(), scene.needle)
         .context("the stereo camera's calibration")?;
+    if let Some(s) = segmenter {
+        pipeline.segmenter = Box::new(s);
+    }
     let dvrk = connect_arms(ros, config)?;
     let tap = recorder.map(|r| r.tap(Arc::clone(&clock)));
     if let Some(tap) = &tap {

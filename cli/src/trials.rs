@@ -160,7 +160,9 @@ pub fn trials(args: TrialsArgs) -> anyhow::Result<u8> {
     if args.record_frames != 0.0 && args.journal_format != JournalFormat::Mcap {
         anyhow::bail!("--record-frames records into MCAP journals: drop --journal-format jsonl");
     }
-    let perception = args.perception.of(&mock);
+    let perception = args
+        .perception
+        .of(&mock, &crate::segmenter::SegmenterChoice::Classical)?;
     let jobs: Vec<(usize, u64)> = (0..policies.len())
         .flat_map(|p| (0..args.trials as u64).map(move |i| (p, args.seed + i)))
         .collect();
@@ -276,6 +278,7 @@ fn trial(
                 mock_config: args.mock_config.as_deref(),
                 outcomes: None,
                 perception: args.perception.name(),
+                segmenter: &crate::segmenter::SegmenterChoice::Classical,
                 wound: &mock.scene.wound,
                 loaded: &policy.loaded,
                 frames_hz: args.record_frames,

@@ -40,11 +40,18 @@ fn benches(c: &mut Criterion) {
         b.iter(|| {
             let lr = seg.locate(black_box(l), full).expect("left");
             let rr = seg.locate(black_box(r), full).expect("right");
-            (seg.segment(l, lr), seg.segment(r, rr))
+            (
+                seg.segment(l, lr).expect("masks"),
+                seg.segment(r, rr).expect("masks"),
+            )
         })
     });
-    let lm = seg.segment(l, seg.locate(l, full).expect("left"));
-    let rm = seg.segment(r, seg.locate(r, full).expect("right"));
+    let lm = seg
+        .segment(l, seg.locate(l, full).expect("left"))
+        .expect("masks");
+    let rm = seg
+        .segment(r, seg.locate(r, full).expect("right"))
+        .expect("masks");
     let input = StereoInput {
         left: l,
         right: r,

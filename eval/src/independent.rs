@@ -42,6 +42,7 @@ use std::time::Instant;
 use stitch_perception::PerceptionError;
 use stitch_perception::pipeline::{JawHint, NeedleEnd, NeedlePipeline};
 use stitch_robot::{Needle, Point, Pose, RgbImage, StereoCalibration, Vector};
+use stitch_sim::Label;
 
 /// One independent pair's scene and truth.
 #[derive(Clone, Debug, PartialEq)]
@@ -79,6 +80,8 @@ struct Scene {
     needle: NeedleShape,
     /// Thread segments, then the instrument's.
     capsules: Vec<Capsule>,
+    /// How many of `capsules` are the thread's (the rest are the instrument's).
+    thread_capsules: usize,
     /// Bounding spheres (centre, radius) of runs of `GROUP` consecutive capsules: shadow
     /// rays test a run's sphere before its capsules (testing every capsule was 40 % of the
     /// render time).
@@ -400,6 +403,7 @@ fn build(
             material: thread_material,
         });
     }
+    let thread_capsules = capsules.len();
     // The jaw, in about half of the pairs.
     let jaw = if rng.random_bool(0.55) {
         let near_tip = rng.random_bool(0.5);
@@ -540,6 +544,7 @@ fn build(
     let scene = Scene {
         needle: shape,
         capsules,
+        thread_capsules,
         groups,
         tissue,
         lights,
@@ -599,6 +604,20 @@ fn catmull_rom(p: &[Point], per: usize) -> Vec<Point> {
 // way than the mock does, and it is a few hundred lines of intersection and shading.
 
 const TILE: u32 = 16;
+/// Where in a pixel near an object its four rays pass.
+const JITTER: [(f64, f64); 4] = [(0.25, 0.25), (0.75, 0.25), (0.25, 0.75), (0.75, 0.75)];
+
+/// Which of a view's `TILE`-pixel tiles each object may cover.
+struct Tiles {
+    /// Tiles per row.
+    tw: u32,
+    /// The capsules that may cover each tile.
+    objects: Vec<Vec<u32>>,
+    /// Whether the needle may cover each tile.
+    needle: Vec<bool>,
+    /// Whether a shadow may fall on each tile (within two tiles of an object).
+    near: Vec<bool>,
+}
 /// The most depth one pixel of disparity may span at the needle, m (see `sample`).
 const MAX_DEPTH_STEP_M: f64 = 0.0025;
 /// Capsules per bounding sphere for shadow rays.
@@ -970,12 +989,10 @@ impl Scene {
         out
     }
 
-    /// One view: origin `eye` (the left camera, or moved along its x by the baseline).
-    fn view(&self, calib: &StereoCalibration, shift_m: f64, rng: &mut ChaCha8Rng) -> RgbImage {
+    /// Which of a view's tiles each object may cover (`eye`: the view's origin).
+    fn tiles(&self, calib: &StereoCalibration, eye: &Point) -> Tiles {
         let (w, h) = (calib.width, calib.height);
         let rot = calib.camera_to_robot.rotation;
-        let eye =
-            Point::from(calib.camera_to_robot.translation.vector) + rot * Vector::x() * shift_m;
         let to_cam = |p: &Point| rot.inverse() * (p - eye);
         // Which tiles each object may cover: capsules by their projected ends, the needle
         // by points along its arc, each grown by its projected radius.
@@ -1055,8 +1072,32 @@ impl Scene {
                 }
             }
         }
+        Tiles {
+            tw,
+            objects: tiles,
+            needle: needle_tiles,
+            near,
+        }
+    }
+
+    /// The view's origin: the left camera, or moved along its x by `shift_m`.
+    fn eye(calib: &StereoCalibration, shift_m: f64) -> Point {
+        Point::from(calib.camera_to_robot.translation.vector)
+            + calib.camera_to_robot.rotation * Vector::x() * shift_m
+    }
+
+    /// One view: origin the left camera, or moved along its x by `shift_m` (the baseline).
+    fn view(&self, calib: &StereoCalibration, shift_m: f64, rng: &mut ChaCha8Rng) -> RgbImage {
+        let (w, h) = (calib.width, calib.height);
+        let rot = calib.camera_to_robot.rotation;
+        let eye = Self::eye(calib, shift_m);
+        let Tiles {
+            tw,
+            objects: tiles,
+            needle: needle_tiles,
+            near,
+        } = self.tiles(calib, &eye);
         let mut linear = vec![[0.0f64; 3]; (w * h) as usize];
-        let jitter = [(0.25, 0.25), (0.75, 0.25), (0.25, 0.75), (0.75, 0.75)];
         let ray = |u: f64, v: f64| -> Vector {
             (rot * Vector::new((u - calib.cx) / calib.fx, (v - calib.cy) / calib.fy, 1.0))
                 .normalize()
@@ -1072,7 +1113,7 @@ impl Scene {
                 for x in 0..w {
                     let k = ((y / TILE) * tw + x / TILE) as usize;
                     let objects = needle_tiles[k] || !tiles[k].is_empty();
-                    let samples: &[(f64, f64)] = if objects { &jitter } else { &[(0.5, 0.5)] };
+                    let samples: &[(f64, f64)] = if objects { &JITTER } else { &[(0.5, 0.5)] };
                     let mut acc = [0.0; 3];
                     for &(jx, jy) in samples {
                         let d = ray(f64::from(x) + jx, f64::from(y) + jy);
@@ -1089,6 +1130,52 @@ impl Scene {
                 }
             });
         self.develop(&linear, w, h, calib, rng)
+    }
+
+    /// What each pixel of a view shows ([`Label`] as `u8`, row-major): of the four rays the
+    /// view's image traces through a pixel near an object, what most of them hit (a tie
+    /// goes to the needle, then the thread, then the instrument).
+    fn labels(&self, calib: &StereoCalibration, shift_m: f64) -> Vec<u8> {
+        let (w, h) = (calib.width, calib.height);
+        let rot = calib.camera_to_robot.rotation;
+        let eye = Self::eye(calib, shift_m);
+        let tiles = self.tiles(calib, &eye);
+        let ray = |u: f64, v: f64| -> Vector {
+            (rot * Vector::new((u - calib.cx) / calib.fx, (v - calib.cy) / calib.fy, 1.0))
+                .normalize()
+        };
+        let mut out = vec![Label::Background as u8; (w * h) as usize];
+        use rayon::prelude::*;
+        out.par_chunks_mut(w as usize)
+            .enumerate()
+            .for_each(|(y, row)| {
+                let y = y as u32;
+                for x in 0..w {
+                    let k = ((y / TILE) * tiles.tw + x / TILE) as usize;
+                    if !tiles.needle[k] && tiles.objects[k].is_empty() {
+                        continue;
+                    }
+                    // Counts of background, needle, thread, instrument.
+                    let mut n = [0u8; 4];
+                    for &(jx, jy) in &JITTER {
+                        let d = ray(f64::from(x) + jx, f64::from(y) + jy);
+                        let l = match self.cast(&eye, &d, &tiles.objects[k], tiles.needle[k]) {
+                            Some((Hit::Needle, _)) => Label::Needle,
+                            Some((Hit::Capsule(i), _)) if i < self.thread_capsules => Label::Thread,
+                            Some((Hit::Capsule(_), _)) => Label::Tool,
+                            _ => Label::Background,
+                        };
+                        n[l as usize] += 1;
+                    }
+                    // The last of the most hit wins.
+                    let best = [Label::Background, Label::Tool, Label::Thread, Label::Needle]
+                        .into_iter()
+                        .max_by_key(|&l| n[l as usize])
+                        .unwrap_or(Label::Background);
+                    row[x as usize] = best as u8;
+                }
+            });
+        out
     }
 
     /// Linear radiance to an 8-bit image: vignetting, white balance, gamma, defocus, noise.
@@ -1195,6 +1282,22 @@ pub fn render(sample: &Sample) -> (RgbImage, RgbImage) {
         .scene
         .view(&sample.calibration, sample.calibration.baseline_m, &mut rng);
     (left, right)
+}
+
+/// A sample's left image alone (the same pixels as [`render`]'s left).
+pub fn render_left(sample: &Sample) -> RgbImage {
+    let mut rng = ChaCha8Rng::seed_from_u64(sample.scene.seed);
+    sample.scene.view(&sample.calibration, 0.0, &mut rng)
+}
+
+/// What each pixel of a sample's left and right images shows ([`Label`] as `u8`, row-major):
+/// the truth segmentation is scored against. Cheap next to [`render`] (no shading).
+pub fn render_labels(sample: &Sample) -> (Vec<u8>, Vec<u8>) {
+    let c = &sample.calibration;
+    (
+        sample.scene.labels(c, 0.0),
+        sample.scene.labels(c, c.baseline_m),
+    )
 }
 
 /// The renderer's version: part of a cached pair's file name, raised whenever a change to
@@ -1321,6 +1424,51 @@ mod tests {
         assert!(dmin < 60.0 && dmax > 300.0, "disparities {dmin}..{dmax}");
         let jaws = set.iter().filter(|s| s.jaw.is_some()).count();
         assert!((15..=45).contains(&jaws), "{jaws} of 60 with a jaw");
+    }
+
+    #[test]
+    fn labels_cover_the_needle_where_it_projects_and_the_thread_and_jaw_appear() {
+        let needle = Needle::default();
+        let set = dataset(12, 5, needle);
+        let mut with_jaw = 0;
+        for s in &set {
+            let c = &s.calibration;
+            let (left, right) = render_labels(s);
+            assert_eq!(left.len(), (c.width * c.height) as usize);
+            let count = |m: &[u8], l: Label| m.iter().filter(|&&v| v == l as u8).count();
+            for m in [&left, &right] {
+                assert!(
+                    count(m, Label::Needle) > 50,
+                    "{} needle pixels",
+                    count(m, Label::Needle)
+                );
+                assert!(
+                    count(m, Label::Thread) > 20,
+                    "{} thread pixels",
+                    count(m, Label::Thread)
+                );
+                assert!(count(m, Label::Background) > m.len() / 2);
+            }
+            if s.jaw.is_some() {
+                with_jaw += 1;
+                assert!(count(&left, Label::Tool) > 0);
+            }
+            // The middle of the arc's wire, where nothing lies over it, is labelled needle.
+            let to_cam = c.camera_to_robot.inverse();
+            let (mut on, mut under) = (0, 0);
+            for k in 2..=30 {
+                let q = to_cam * (s.truth * needle.point_at(PI * f64::from(k) / 32.0));
+                let (u, v) = (c.fx * q.x / q.z + c.cx, c.fy * q.y / q.z + c.cy);
+                let l = left[(v as u32 * c.width + u as u32) as usize];
+                on += usize::from(l == Label::Needle as u8);
+                under += usize::from(l == Label::Thread as u8 || l == Label::Tool as u8);
+            }
+            assert!(
+                on + under >= 27 && on >= 10,
+                "of 29 arc points {on} needle, {under} under"
+            );
+        }
+        assert!(with_jaw > 0);
     }
 
     #[test]

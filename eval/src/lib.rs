@@ -3,5 +3,6 @@
 pub mod independent;
 pub mod own;
 mod report;
+pub mod segmentation;
 
 pub use report::{Accuracy, FrameResult, accuracy, failure_kind, percentile};

@@ -88,6 +88,7 @@ pub fn failure_kind(e: &PerceptionError) -> &'static str {
         PerceptionError::AmbiguousEndpoints { .. } => "ambiguous_endpoints",
         PerceptionError::Config { .. } => "config",
         PerceptionError::Camera { .. } => "camera",
+        PerceptionError::Model { .. } => "model",
         _ => "other",
     }
 }

@@ -1254,12 +1254,12 @@ mod tests {
                 x1: 140,
                 y1: 57,
             };
-            let mut lm = seg.segment(&l, roi);
+            let mut lm = seg.segment(&l, roi).expect("masks");
             // A sparse random mask, so that paths stop and restart.
             lm.needle = (0..roi.width() * roi.height())
                 .map(|i| needle[i as usize])
                 .collect();
-            let rm = seg.segment(&r, Rect::full(150, 60));
+            let rm = seg.segment(&r, Rect::full(150, 60)).expect("masks");
             for around in [None, Some(1), Some(3)] {
                 let m = SemiGlobalMatcher {
                     around_mask_px: around,
@@ -1293,8 +1293,8 @@ mod tests {
             x1: 190,
             y1: 75,
         };
-        let lm = seg.segment(&l, roi);
-        let rm = seg.segment(&r, Rect::full(200, 80));
+        let lm = seg.segment(&l, roi).expect("masks");
+        let rm = seg.segment(&r, Rect::full(200, 80)).expect("masks");
         let whole = SemiGlobalMatcher {
             around_mask_px: None,
             ..SemiGlobalMatcher::default()
@@ -1377,8 +1377,8 @@ mod tests {
     fn mask_rows_match_the_bar_at_its_shift() {
         let (l, r) = shifted_pair(200, 80, 37);
         let seg = ColorSegmenter::default();
-        let lm = seg.segment(&l, Rect::full(200, 80));
-        let rm = seg.segment(&r, Rect::full(200, 80));
+        let lm = seg.segment(&l, Rect::full(200, 80)).expect("masks");
+        let rm = seg.segment(&r, Rect::full(200, 80)).expect("masks");
         let map = MaskRowMatcher::default()
             .disparity(&input(&l, &r, &lm, &rm, &seg))
             .expect("map");
@@ -1391,7 +1391,7 @@ mod tests {
     fn sgm_refuses_a_volume_too_large() {
         let (l, r) = shifted_pair(200, 80, 37);
         let seg = ColorSegmenter::default();
-        let m = seg.segment(&l, Rect::full(200, 80));
+        let m = seg.segment(&l, Rect::full(200, 80)).expect("masks");
         let sgm = SemiGlobalMatcher {
             max_cells: 1000,
             ..SemiGlobalMatcher::default()

@@ -2,6 +2,8 @@
 
 pub mod disparity;
 pub mod fit;
+#[cfg(feature = "onnx")]
+pub mod onnx;
 pub mod pipeline;
 pub mod segment;
 
@@ -12,7 +14,7 @@ pub use pipeline::{
     JawHint, NeedleEnd, NeedleHint, NeedlePipeline, PipelineEstimator, PipelineOutput,
     PipelineParams, PoseError, TissueHint,
 };
-pub use segment::{ColorSegmenter, Masks, Rect, Segmenter};
+pub use segment::{ColorSegmenter, Masks, Rect, Segmenter, SharedSegmenter};
 
 use serde::{Deserialize, Serialize};
 use std::time::Duration;
@@ -94,6 +96,13 @@ pub enum PerceptionError {
     #[error("camera: {message}")]
     Camera {
         /// What it said.
+        message: String,
+    },
+    /// A learned model (the segmenter's) failed to run: a fault of the perception system,
+    /// like a camera's, not a needle out of sight.
+    #[error("model: {message}")]
+    Model {
+        /// What failed.
         message: String,
     },
 }

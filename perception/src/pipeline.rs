@@ -393,16 +393,18 @@ impl NeedlePipeline {
                     view: "left (the expected region is out of view)".into(),
                 })?;
             let lm = if region.whole {
-                Some(seg.segment(left, rect)).filter(|m| m.needle_count() > 0)
+                Some(seg.segment(left, rect)?).filter(|m| m.needle_count() > 0)
             } else {
-                seg.locate(left, rect).map(|roi| seg.segment(left, roi))
+                seg.locate(left, rect)
+                    .map(|roi| seg.segment(left, roi))
+                    .transpose()?
             }
             .ok_or(PerceptionError::NoMask {
                 view: "left".into(),
             })?;
             let l = lm.roi;
             let rr = right_band(&l, range);
-            let rm = seg.segment(right, rr);
+            let rm = seg.segment(right, rr)?;
             if rm.needle_count() == 0 {
                 return Err(PerceptionError::NoMask {
                     view: "right".into(),
@@ -427,6 +429,7 @@ impl NeedlePipeline {
         } else {
             (seg.segment(left, lroi), seg.segment(right, rroi))
         };
+        let (lm, rm) = (lm?, rm?);
         // The two regions frame the same needle: their left edges' offset and their right
         // edges' offset are disparities of its extreme points; the needle's own depth spread
         // is within the margin of them.

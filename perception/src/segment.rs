@@ -107,11 +107,34 @@ pub trait Segmenter: Send + Sync + std::fmt::Debug {
     /// Where the needle appears in `image`, searched over `within`: a region of interest
     /// around it (including margin for the thread near it), or `None` if no needle is seen.
     fn locate(&self, image: &RgbImage, within: Rect) -> Option<Rect>;
-    /// Needle and thread masks over `roi`.
-    fn segment(&self, image: &RgbImage, roi: Rect) -> Masks;
+    /// Needle and thread masks over `roi`; an error only when the segmenter itself fails
+    /// (a learned model that cannot run), never for an image without a needle.
+    fn segment(&self, image: &RgbImage, roi: Rect) -> Result<Masks, PerceptionError>;
     /// How needle-like a pixel is: positive inside the needle mask, negative outside, with
     /// a zero crossing at its edge (for sub-pixel edges). Needs no neighbours.
     fn needleness(&self, rgb: [u8; 3]) -> f32;
+}
+
+/// A segmenter several pipelines share (a model loaded once), equal only to itself.
+#[derive(Clone, Debug)]
+pub struct SharedSegmenter(pub std::sync::Arc<dyn Segmenter>);
+
+impl PartialEq for SharedSegmenter {
+    fn eq(&self, other: &Self) -> bool {
+        std::sync::Arc::ptr_eq(&self.0, &other.0)
+    }
+}
+
+impl Segmenter for SharedSegmenter {
+    fn locate(&self, image: &RgbImage, within: Rect) -> Option<Rect> {
+        self.0.locate(image, within)
+    }
+    fn segment(&self, image: &RgbImage, roi: Rect) -> Result<Masks, PerceptionError> {
+        self.0.segment(image, roi)
+    }
+    fn needleness(&self, rgb: [u8; 3]) -> f32 {
+        self.0.needleness(rgb)
+    }
 }
 
 /// The classical colour segmenter's thresholds.
@@ -287,7 +310,7 @@ impl Segmenter for ColorSegmenter {
         Some(rect.grown(self.margin_px, image.width, image.height))
     }
 
-    fn segment(&self, image: &RgbImage, roi: Rect) -> Masks {
+    fn segment(&self, image: &RgbImage, roi: Rect) -> Result<Masks, PerceptionError> {
         let roi = roi.clipped(image.width, image.height);
         let w = image.width as usize;
         let (rw, rh) = (roi.width() as usize, roi.height() as usize);
@@ -304,11 +327,11 @@ impl Segmenter for ColorSegmenter {
         if self.min_component_px > 1 {
             drop_specks(&mut needle, rw, rh, self.min_component_px as usize);
         }
-        Masks {
+        Ok(Masks {
             roi,
             needle,
             thread,
-        }
+        })
     }
 
     fn needleness(&self, p: [u8; 3]) -> f32 {
@@ -416,7 +439,7 @@ fn label_groups(grid: &mut [u32], gw: usize, gh: usize, reach: i64) -> Vec<Group
 }
 
 /// Clear the 8-connected components of a `w × h` mask smaller than `min` pixels.
-fn drop_specks(mask: &mut [u8], w: usize, h: usize, min: usize) {
+pub(crate) fn drop_specks(mask: &mut [u8], w: usize, h: usize, min: usize) {
     let mut grid: Vec<u32> = mask
         .iter()
         .map(|&v| if v != 0 { u32::MAX } else { 0 })
@@ -499,7 +522,7 @@ mod tests {
             "{r:?}"
         );
         assert!(r.x0 > 10 && r.y0 > 10, "speck joined: {r:?}");
-        let m = s.segment(&img, r);
+        let m = s.segment(&img, r).expect("masks");
         assert_eq!(m.needle_count(), 60 * 6);
         assert!(m.is_needle(120, 52) && !m.is_needle(120, 60));
         let blank = image_with(320, 240, [206, 122, 118], &[]);
@@ -565,7 +588,7 @@ mod tests {
         };
         assert!(s.locate(&img, far).is_some());
         assert_eq!(
-            s.segment(&img, far).roi,
+            s.segment(&img, far).expect("masks").roi,
             Rect {
                 x0: 60,
                 y0: 40,
@@ -580,7 +603,7 @@ mod tests {
             y1: 200,
         };
         assert_eq!(s.locate(&img, outside), None);
-        assert_eq!(s.segment(&img, outside).needle_count(), 0);
+        assert_eq!(s.segment(&img, outside).expect("masks").needle_count(), 0);
     }
 
     #[test]

@@ -4,7 +4,7 @@
 use crate::{FailureKind, Layout, Observer, PassObservation, Rig, RobotPrimitives};
 use std::sync::Arc;
 use std::time::Duration;
-use stitch_perception::{NeedleEstimator, NeedlePipeline, PipelineEstimator};
+use stitch_perception::{NeedleEstimator, NeedlePipeline, PipelineEstimator, SharedSegmenter};
 use stitch_robot::{FrameObserver, ObservedCamera, Point, SimClock, WoundPoint};
 use stitch_sim::{
     CameraConfig, MockCamera, MockDvrk, SceneConfig, SensingConfig, SensingFailure, Side, SimError,
@@ -130,8 +130,9 @@ pub fn mock_layout(scene: &SceneConfig, sensing: &SensingConfig) -> Layout {
 pub enum MockPerception {
     /// The mock's noise model: the truth plus noise and dropouts (fast; `--perception model`).
     Model(SensingConfig),
-    /// The stereo pipeline on pairs the mock's camera renders (`--perception pipeline`).
-    Pipeline(Box<CameraConfig>),
+    /// The stereo pipeline on pairs the mock's camera renders (`--perception pipeline`),
+    /// with this segmenter (`None`: the classical colour segmenter).
+    Pipeline(Box<CameraConfig>, Option<SharedSegmenter>),
 }
 
 /// Simulated time one rendered frame costs the pipeline in the loop: a 30 Hz camera's frame
@@ -176,7 +177,7 @@ pub fn mock_primitives_observed(
             Box::new(ModelEstimator::new(world.clone(), sensing, streams)?),
             sensing,
         ),
-        MockPerception::Pipeline(camera) => {
+        MockPerception::Pipeline(camera, segmenter) => {
             let renderer = StereoRenderer::new(*camera, world.phantom_view())?;
             let calibration = renderer.calibration().clone();
             let camera = ObservedCamera::new(
@@ -188,12 +189,16 @@ pub fn mock_primitives_observed(
                 ),
                 frames,
             );
-            let pipeline = NeedlePipeline::classical(calibration, scene.needle).map_err(|e| {
-                SimError::Config {
-                    what: "camera".into(),
-                    why: e.to_string(),
-                }
-            })?;
+            let mut pipeline =
+                NeedlePipeline::classical(calibration, scene.needle).map_err(|e| {
+                    SimError::Config {
+                        what: "camera".into(),
+                        why: e.to_string(),
+                    }
+                })?;
+            if let Some(s) = segmenter {
+                pipeline.segmenter = Box::new(s);
+            }
             (
                 Box::new(PipelineEstimator::new(camera, pipeline, seed)),
                 SensingConfig::default(),

@@ -333,6 +333,10 @@ impl RobotPrimitives {
             Err(PerceptionError::Camera { message }) => Err(failed(FailureKind::ArmFault {
                 message: format!("perception: {message}"),
             })),
+            // A segmentation model that cannot run is as much a fault as a failing camera.
+            Err(e @ PerceptionError::Model { .. }) => Err(failed(FailureKind::ArmFault {
+                message: format!("perception: {e}"),
+            })),
             Err(e) => {
                 self.unseen.push(e.to_string());
                 Ok(None)
@@ -763,7 +767,7 @@ impl Primitives for RobotPrimitives {
                     }
                     // A failing camera is a fault of the robot, as in a step, not a needle
                     // out of sight.
-                    Err(e @ PerceptionError::Camera { .. }) => {
+                    Err(e @ (PerceptionError::Camera { .. } | PerceptionError::Model { .. })) => {
                         obs.faults.push(format!("perception: {e}"));
                         obs.needle_failure = Some(e.to_string());
                     }

@@ -1,0 +1,321 @@
+#!/usr/bin/env python3
+"""Train the needle-and-thread U-Net that `--segmenter onnx` runs, and export it to ONNX.
+
+A developer step, not a CI or user step (PyTorch on CPU: perception/models/requirements.txt).
+The frames come from `stitch perceive dataset --set training` (the mock's renderer under
+randomised cameras); this script randomises them further (tissue colour and texture, glare,
+shadows, needle and thread colour, light, defocus, noise, scale, orientation) so the net
+learns the needle's and the thread's shape rather than the mock's palette. Score it on frames
+no training setting made: `stitch bench segmentation` (the independent ray tracer's set).
+
+    stitch perceive dataset --set training --frames 700 --seed 7 --out /tmp/seg/train
+    python perception/models/train.py --data /tmp/seg/train --out perception/models
+
+writes needle_thread_unet.onnx (one file, weights inside), the reference pair the Rust tests
+compare against (reference/input.png and reference/logits.bin: this script's PyTorch output
+on that input) and wrong_input.onnx (a model with a one-channel input, for the error test).
+
+The contract (docs/perception.md, "The model contract"): input `image`, float32
+[1, 3, H, W], RGB in 0..1 as stored (sRGB, not linearised), H and W multiples of 8; output
+`logits`, float32 [1, 2, H, W]: channel 0 the needle, channel 1 the thread, a pixel in a mask
+where its logit is above 0.
+"""
+
+import argparse
+import glob
+import math
+import os
+import struct
+import time
+
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+from PIL import Image
+
+NEEDLE, THREAD = 1, 2
+
+
+def conv(cin, cout, stride=1):
+    return nn.Sequential(nn.Conv2d(cin, cout, 3, stride, 1), nn.ReLU(inplace=True))
+
+
+class UNet(nn.Module):
+    """Three scales down, skips added (not concatenated) on the way up: a few hundred
+    multiply-adds a pixel at full resolution, where a thin wire needs it."""
+
+    def __init__(self, c=(8, 16, 32, 48)):
+        super().__init__()
+        self.e0 = conv(3, c[0])
+        self.e1 = nn.Sequential(conv(c[0], c[1], 2), conv(c[1], c[1]))
+        self.e2 = nn.Sequential(conv(c[1], c[2], 2), conv(c[2], c[2]))
+        self.e3 = nn.Sequential(conv(c[2], c[3], 2), conv(c[3], c[3]))
+        self.l3 = nn.Conv2d(c[3], c[2], 1)
+        self.d2 = conv(c[2], c[2])
+        self.l2 = nn.Conv2d(c[2], c[1], 1)
+        self.d1 = conv(c[1], c[1])
+        self.l1 = nn.Conv2d(c[1], c[0], 1)
+        self.d0 = conv(c[0], c[0])
+        self.head = nn.Conv2d(c[0], 2, 1)
+
+    def forward(self, x):
+        x0 = self.e0(x)
+        x1 = self.e1(x0)
+        x2 = self.e2(x1)
+        x3 = self.e3(x2)
+        up = lambda t: F.interpolate(t, scale_factor=2.0, mode="nearest")
+        y = self.d2(up(self.l3(x3)) + x2)
+        y = self.d1(up(self.l2(y)) + x1)
+        y = self.d0(up(self.l1(y)) + x0)
+        return self.head(y)
+
+
+def load(folder):
+    items = []
+    for f in sorted(glob.glob(os.path.join(folder, "[0-9]*[0-9].png"))):
+        img = np.asarray(Image.open(f).convert("RGB"), dtype=np.float32) / 255.0
+        lab = np.asarray(Image.open(f[:-4] + "-labels.png"), dtype=np.uint8)
+        items.append((img, lab))
+    if not items:
+        raise SystemExit(f"no crops in {folder} (stitch perceive dataset --out {folder})")
+    return items
+
+
+def fit_side(img, lab, max_side):
+    """What the Rust runner does: shrink a region whose longer side exceeds max_side."""
+    h, w = lab.shape
+    s = max(h, w)
+    if s <= max_side:
+        return img, lab
+    k = max_side / s
+    size = (max(8, round(w * k)), max(8, round(h * k)))
+    im = Image.fromarray((img * 255).astype(np.uint8)).resize(size, Image.BOX)
+    lb = Image.fromarray(lab).resize(size, Image.NEAREST)
+    return np.asarray(im, np.float32) / 255.0, np.asarray(lb)
+
+
+def smooth_noise(rng, h, w, cells):
+    g = rng.random((cells + 1, cells + 1), dtype=np.float32)
+    t = torch.from_numpy(g)[None, None]
+    return F.interpolate(t, size=(h, w), mode="bicubic", align_corners=True)[0, 0].numpy()
+
+
+def texture(rng, h, w):
+    """A random tissue: a two-colour palette over multi-octave noise."""
+    n = sum(smooth_noise(rng, h, w, int(rng.integers(2, 24))) * a for a in (0.5, 0.3, 0.2))
+    n = (n - n.min()) / (np.ptp(n) + 1e-6)
+    hue = rng.choice([rng.uniform(-0.05, 0.12), rng.uniform(0, 1)], p=[0.8, 0.2])
+    def colour():
+        v = rng.uniform(0.2, 0.95)
+        s = rng.uniform(0.25, 0.9)
+        import colorsys
+        return np.array(colorsys.hsv_to_rgb(hue % 1.0 + rng.uniform(-0.04, 0.04), s, v), np.float32)
+    a, b = colour(), colour()
+    return a[None, None] * (1 - n[..., None]) + b[None, None] * n[..., None]
+
+
+def augment(rng, img, lab, size):
+    img = img.copy()
+    h, w = lab.shape
+    bg = lab == 0
+    # Tissue: another colour and texture, keeping some of the rendered shading.
+    if rng.random() < 0.75:
+        t = texture(rng, h, w)
+        keep = rng.uniform(0.0, 0.5)
+        img[bg] = (keep * img + (1 - keep) * t)[bg]
+    # Glare on wet tissue: a bright wash, and specks from blobs down to single pixels.
+    if rng.random() < 0.3:
+        wash = smooth_noise(rng, h, w, int(rng.integers(1, 4)))[..., None]
+        img[bg] = np.clip(img + wash * rng.uniform(0.2, 0.8), 0, 1)[bg]
+    if rng.random() < 0.6:
+        n = smooth_noise(rng, h, w, int(rng.integers(8, 40)))
+        fine = rng.random((h, w), dtype=np.float32) if rng.random() < 0.5 else n
+        n = 0.5 * n + 0.5 * fine
+        spots = (n > rng.uniform(0.6, 0.85)) & bg
+        img[spots] = np.clip(img[spots] + rng.uniform(0.4, 1.0), 0, 1)
+    # The instrument: sometimes bright steel, like the needle but not the needle.
+    tool = lab == 3
+    if tool.any() and rng.random() < 0.4:
+        img[tool] = np.clip(img[tool] * rng.uniform(1.5, 4.0) + rng.uniform(0.1, 0.4), 0, 1)
+    # Shadows: dark curved bands on the tissue.
+    if rng.random() < 0.5:
+        yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+        cx, cy = rng.uniform(-0.5, 1.5) * w, rng.uniform(-0.5, 1.5) * h
+        r = rng.uniform(0.3, 1.2) * max(h, w)
+        band = np.abs(np.hypot(xx - cx, yy - cy) - r) < rng.uniform(1.5, 6)
+        img[band & bg] *= rng.uniform(0.2, 0.6)
+    # The needle: brighter or duller, tinted by what it reflects.
+    nd = lab == NEEDLE
+    if nd.any():
+        tint = img[bg].mean(0) if bg.any() else np.ones(3, np.float32)
+        m = rng.uniform(0.0, 0.35)
+        img[nd] = np.clip(img[nd] * rng.uniform(0.65, 1.3) * (1 - m) + tint * m * 1.2, 0, 1)
+    # The thread: another violet.
+    th = lab == THREAD
+    if th.any():
+        img[th] = np.clip(img[th] * rng.uniform(0.7, 1.3, 3).astype(np.float32), 0, 1)
+    # Light, white balance, gamma.
+    img = img * rng.uniform(0.6, 1.4) * rng.uniform(0.85, 1.15, 3).astype(np.float32)
+    img = np.clip(img, 0, 1) ** rng.uniform(0.75, 1.3)
+    # Scale (as a region of another size would be), then the runner's fit.
+    k = rng.uniform(0.6, 1.5)
+    nh, nw = max(8, round(h * k)), max(8, round(w * k))
+    img = np.asarray(Image.fromarray((img * 255).astype(np.uint8)).resize((nw, nh), Image.BILINEAR), np.float32) / 255
+    lab = np.asarray(Image.fromarray(lab).resize((nw, nh), Image.NEAREST))
+    img, lab = fit_side(img, lab, 256)
+    # Defocus and noise.
+    x = torch.from_numpy(np.ascontiguousarray(img.transpose(2, 0, 1)))[None]
+    sigma = rng.uniform(0.0, 1.5)
+    if sigma > 0.3:
+        r = int(math.ceil(2.5 * sigma))
+        k1 = torch.exp(-torch.arange(-r, r + 1, dtype=torch.float32) ** 2 / (2 * sigma**2))
+        k1 = (k1 / k1.sum()).view(1, 1, 1, -1).repeat(3, 1, 1, 1)
+        x = F.conv2d(F.pad(x, (r, r, 0, 0), mode="replicate"), k1, groups=3)
+        x = F.conv2d(F.pad(x, (0, 0, r, r), mode="replicate"), k1.transpose(2, 3), groups=3)
+    x = x + torch.randn_like(x) * rng.uniform(0, 0.03)
+    x = x.clamp(0, 1)[0]
+    y = torch.from_numpy(lab.astype(np.int64))
+    # Orientation.
+    if rng.random() < 0.5:
+        x, y = x.flip(-1), y.flip(-1)
+    if rng.random() < 0.5:
+        x, y = x.flip(-2), y.flip(-2)
+    if rng.random() < 0.5:
+        x, y = x.transpose(-1, -2), y.transpose(-1, -2)
+    # A window of `size` (padded by the edge if smaller), favouring ones with needle in.
+    _, h, w = x.shape
+    ph, pw = max(0, size - h), max(0, size - w)
+    if ph or pw:
+        x = F.pad(x[None], (0, pw, 0, ph), mode="replicate")[0]
+        y = F.pad(y[None, None].float(), (0, pw, 0, ph), mode="replicate")[0, 0].long()
+        _, h, w = x.shape
+    for _ in range(5):
+        y0, x0 = rng.integers(0, h - size + 1), rng.integers(0, w - size + 1)
+        win = y[y0:y0 + size, x0:x0 + size]
+        if (win == NEEDLE).sum() > 30:
+            break
+    return x[:, y0:y0 + size, x0:x0 + size], win
+
+
+def targets(y):
+    return torch.stack([(y == NEEDLE), (y == THREAD)], 1).float()
+
+
+def loss_fn(logits, t):
+    # Thin structures: weighted cross-entropy plus a soft Dice term per class.
+    bce = F.binary_cross_entropy_with_logits(logits, t, pos_weight=torch.tensor([4.0, 6.0]).view(1, 2, 1, 1))
+    p = torch.sigmoid(logits)
+    inter = (p * t).sum((0, 2, 3))
+    dice = 1 - (2 * inter + 1) / (p.sum((0, 2, 3)) + t.sum((0, 2, 3)) + 1)
+    return bce + dice.mean()
+
+
+def iou(model, items, max_side):
+    model.eval()
+    acc = np.zeros((2, 2))
+    with torch.no_grad():
+        for img, lab in items:
+            h, w = lab.shape
+            im, _ = fit_side(img, lab, max_side)
+            x = torch.from_numpy(np.ascontiguousarray(im.transpose(2, 0, 1)))[None]
+            hh, ww = x.shape[-2:]
+            x = F.pad(x, (0, (-ww) % 8, 0, (-hh) % 8), mode="replicate")
+            out = model(x)[:, :, :hh, :ww]
+            out = F.interpolate(out, size=(h, w), mode="bilinear", align_corners=False)[0] > 0
+            for c, l in enumerate((NEEDLE, THREAD)):
+                t = torch.from_numpy(lab == l)
+                acc[c] += [(out[c] & t).sum().item(), (out[c] | t).sum().item()]
+    model.train()
+    return acc[:, 0] / np.maximum(acc[:, 1], 1)
+
+
+def write_reference(model, folder, out):
+    """The contract's reference: PyTorch's logits on one crop, for the Rust tests."""
+    os.makedirs(os.path.join(out, "reference"), exist_ok=True)
+    f = sorted(glob.glob(os.path.join(folder, "[0-9]*[0-9].png")))[0]
+    im = Image.open(f).convert("RGB")
+    w, h = im.size
+    im = im.crop((0, 0, min(w, 64), min(h, 48)))
+    im.save(os.path.join(out, "reference", "input.png"))
+    x = torch.from_numpy(np.asarray(im, np.float32).transpose(2, 0, 1) / 255.0)[None]
+    with torch.no_grad():
+        y = model(x)[0].numpy().astype("<f4")
+    with open(os.path.join(out, "reference", "logits.bin"), "wb") as fh:
+        fh.write(struct.pack("<3I", *y.shape))
+        fh.write(y.tobytes())
+
+
+def export(model, path, channels=3):
+    model.eval()
+    x = torch.rand(1, channels, 64, 64)
+    torch.onnx.export(
+        model, x, path, input_names=["image"], output_names=["logits"],
+        dynamic_axes={"image": {2: "height", 3: "width"}, "logits": {2: "height", 3: "width"}},
+        opset_version=17, dynamo=False,
+    )
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", required=True, help="crops from `stitch perceive dataset --set training`")
+    ap.add_argument("--val", help="crops to report IoU on while training (not used to choose anything)")
+    ap.add_argument("--out", default=os.path.dirname(os.path.abspath(__file__)))
+    ap.add_argument("--steps", type=int, default=3000)
+    ap.add_argument("--batch", type=int, default=12)
+    ap.add_argument("--size", type=int, default=128)
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--threads", type=int, default=2)
+    a = ap.parse_args()
+    torch.manual_seed(a.seed)
+    torch.set_num_threads(a.threads)
+    rng = np.random.default_rng(a.seed)
+    items = load(a.data)
+    val = load(a.val) if a.val else []
+    model = UNet()
+    print(f"{len(items)} crops, {sum(p.numel() for p in model.parameters())} parameters")
+    opt = torch.optim.AdamW(model.parameters(), lr=3e-3, weight_decay=1e-4)
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=3e-3, total_steps=a.steps, pct_start=0.1)
+    t0 = time.time()
+    for step in range(1, a.steps + 1):
+        batch = [augment(rng, *items[rng.integers(len(items))], a.size) for _ in range(a.batch)]
+        x = torch.stack([b[0] for b in batch])
+        y = torch.stack([b[1] for b in batch])
+        loss = loss_fn(model(x), targets(y))
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        sched.step()
+        if step % 250 == 0 or step == a.steps:
+            msg = f"step {step} loss {loss.item():.3f} {time.time() - t0:.0f} s"
+            if val:
+                n, t = iou(model, val, 256)
+                msg += f" val IoU needle {n:.3f} thread {t:.3f}"
+            print(msg, flush=True)
+    os.makedirs(a.out, exist_ok=True)
+    path = os.path.join(a.out, "needle_thread_unet.onnx")
+    export(model, path)
+    # One file: fold any external weights back in.
+    import onnx
+    m = onnx.load(path, load_external_data=True)
+    onnx.save_model(m, path, save_as_external_data=False)
+    for extra in glob.glob(path + ".data"):
+        os.remove(extra)
+    write_reference(model, a.data, a.out)
+    export(UNet_one_channel(), os.path.join(a.out, "wrong_input.onnx"), channels=1)
+    print(f"wrote {path} ({os.path.getsize(path)} bytes)")
+
+
+class UNet_one_channel(nn.Module):
+    """A model that breaks the contract (one input channel), for the error test."""
+
+    def __init__(self):
+        super().__init__()
+        self.c = nn.Conv2d(1, 2, 1)
+
+    def forward(self, x):
+        return self.c(x)
+
+
+if __name__ == "__main__":
+    main()

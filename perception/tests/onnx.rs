@@ -1,0 +1,140 @@
+//! The learned segmenter through ONNX Runtime (feature `onnx`; ORT_DYLIB_PATH names
+//! libonnxruntime.so 1.31: `.ci/run` sets it from the tests' Python venv).
+#![cfg(feature = "onnx")]
+
+use std::path::PathBuf;
+use stitch_perception::onnx::OnnxSegmenter;
+use stitch_perception::{PerceptionError, Rect, Segmenter};
+use stitch_robot::RgbImage;
+
+fn models() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models")
+}
+
+fn committed() -> OnnxSegmenter {
+    OnnxSegmenter::from_file(&models().join("needle_thread_unet.onnx"), 1)
+        .unwrap_or_else(|e| panic!("the committed model: {e}"))
+}
+
+fn reference_input() -> RgbImage {
+    let img = image::open(models().join("reference/input.png"))
+        .expect("reference input")
+        .to_rgb8();
+    RgbImage {
+        width: img.width(),
+        height: img.height(),
+        data: img.into_raw(),
+    }
+}
+
+/// PyTorch's logits for the reference input, written by train.py: three little-endian u32
+/// (channels, height, width), then the floats.
+fn reference_logits() -> (Vec<usize>, Vec<f32>) {
+    let bytes = std::fs::read(models().join("reference/logits.bin")).expect("logits");
+    let dims: Vec<usize> = bytes[..12]
+        .chunks_exact(4)
+        .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize)
+        .collect();
+    let data = bytes[12..]
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect();
+    (dims, data)
+}
+
+#[test]
+fn the_committed_model_gives_pytorchs_logits_on_the_reference_input() {
+    let s = committed();
+    let img = reference_input();
+    let (dims, want) = reference_logits();
+    assert_eq!(dims, vec![2, img.height as usize, img.width as usize]);
+    let [needle, thread] = s
+        .logits(&img, Rect::full(img.width, img.height))
+        .expect("logits");
+    let n = needle.len();
+    assert_eq!(n, (img.width * img.height) as usize);
+    let got: Vec<f32> = needle.into_iter().chain(thread).collect();
+    let worst = got
+        .iter()
+        .zip(&want)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0f32, f32::max);
+    assert!(
+        worst < 1e-3,
+        "largest difference from PyTorch's logits: {worst}"
+    );
+    // The masks are the logits above zero (then needle specks dropped).
+    let m = s
+        .segment(&img, Rect::full(img.width, img.height))
+        .expect("masks");
+    let thread_want: Vec<u8> = want[n..].iter().map(|&v| u8::from(v > 0.0)).collect();
+    assert_eq!(m.thread, thread_want);
+    let needle_want = want[..n].iter().filter(|&&v| v > 0.0).count();
+    assert!(m.needle_count() <= needle_want);
+}
+
+#[test]
+fn a_region_larger_than_the_models_side_is_shrunk_and_brought_back() {
+    let s = committed();
+    let (w, h) = (700u32, 90u32);
+    let img = RgbImage {
+        width: w,
+        height: h,
+        data: (0..w * h * 3).map(|i| (i % 251) as u8).collect(),
+    };
+    let roi = Rect {
+        x0: 10,
+        y0: 5,
+        x1: 690,
+        y1: 85,
+    };
+    let [n, t] = s.logits(&img, roi).expect("logits");
+    assert_eq!(n.len(), (roi.width() * roi.height()) as usize);
+    assert_eq!(t.len(), n.len());
+    assert!(n.iter().chain(&t).all(|v| v.is_finite()));
+    let m = s.segment(&img, roi).expect("masks");
+    assert_eq!(m.roi, roi);
+    // An empty region gives empty masks, not an error.
+    let empty = Rect {
+        x0: 5,
+        y0: 5,
+        x1: 5,
+        y1: 9,
+    };
+    assert_eq!(s.segment(&img, empty).expect("empty").needle.len(), 0);
+}
+
+fn config_message(e: PerceptionError) -> String {
+    match e {
+        PerceptionError::Config { message } => message,
+        other => panic!("expected a configuration error, got {other:?}"),
+    }
+}
+
+#[test]
+fn a_file_that_is_not_a_model_is_a_clear_error() {
+    let e = OnnxSegmenter::from_bytes(b"not an onnx model at all", "garbage.onnx", 1)
+        .expect_err("garbage loads");
+    let m = config_message(e);
+    assert!(
+        m.contains("garbage.onnx") && m.contains("not a model"),
+        "{m}"
+    );
+    // Truncated: the committed model cut in half.
+    let bytes = std::fs::read(models().join("needle_thread_unet.onnx")).expect("model");
+    let e = OnnxSegmenter::from_bytes(&bytes[..bytes.len() / 2], "half.onnx", 1)
+        .expect_err("half a model loads");
+    assert!(config_message(e).contains("half.onnx"));
+    let e = OnnxSegmenter::from_file(&models().join("no-such-model.onnx"), 1)
+        .expect_err("a missing file loads");
+    assert!(config_message(e).contains("cannot read"));
+}
+
+#[test]
+fn a_model_with_the_wrong_input_shape_is_refused_with_the_contract() {
+    let e = OnnxSegmenter::from_file(&models().join("wrong_input.onnx"), 1)
+        .expect_err("a one-channel model loads");
+    let m = config_message(e);
+    assert!(m.contains("wrong_input.onnx"), "{m}");
+    assert!(m.contains("[1, 3, H, W]"), "{m}");
+}
