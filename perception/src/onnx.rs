@@ -97,6 +97,8 @@ impl OnnxSegmenter {
             .and_then(|b| Ok(b.with_optimization_level(GraphOptimizationLevel::Level3)?))
             .and_then(|b| Ok(b.with_intra_threads(threads.max(1))?))
             .and_then(|b| Ok(b.with_inter_threads(1)?))
+            // Every region has its own size: a memory plan per shape does not pay.
+            .and_then(|b| Ok(b.with_memory_pattern(false)?))
             .map_err(|e| err(&e))?
             .commit_from_memory(bytes)
             .map_err(|e| err(&format!("not a model ONNX Runtime can load ({e})")))?;
