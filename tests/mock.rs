@@ -246,3 +246,71 @@ mod faults {
         );
     }
 }
+
+/// A segmenter that finds the needle's region but cannot segment it: a learned model that
+/// fails mid-run.
+#[derive(Debug)]
+struct BrokenModel(stitch_perception::ColorSegmenter);
+
+impl stitch_perception::Segmenter for BrokenModel {
+    fn locate(
+        &self,
+        image: &stitch_robot::RgbImage,
+        within: stitch_perception::Rect,
+    ) -> Option<stitch_perception::Rect> {
+        self.0.locate(image, within)
+    }
+    fn segment(
+        &self,
+        _: &stitch_robot::RgbImage,
+        _: stitch_perception::Rect,
+    ) -> Result<stitch_perception::Masks, stitch_perception::PerceptionError> {
+        Err(stitch_perception::PerceptionError::Model {
+            message: "broken.onnx: inference failed".into(),
+        })
+    }
+    fn needleness(&self, rgb: [u8; 3]) -> f32 {
+        self.0.needleness(rgb)
+    }
+}
+
+#[test]
+fn a_segmentation_model_that_fails_mid_run_is_an_arm_fault_and_the_arms_hold() {
+    use stitch_engine::{Entry, FailureClass};
+    use stitch_primitives::{FailureKind, MockPerception, mock_primitives_with};
+    let scene = SceneConfig::default();
+    let wound = Wound::linear(&scene.wound).expect("wound");
+    let loader = PlanLoader::new(&wound, ScriptLimits::default());
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scripts/stitch.rhai");
+    let plan = load_plan(&loader, &path).expect("plan").plan;
+    let clock = SimClock::new();
+    let broken = stitch_perception::SharedSegmenter(Arc::new(BrokenModel(
+        stitch_perception::ColorSegmenter::default(),
+    )));
+    let perception = MockPerception::Pipeline(Box::default(), Some(broken));
+    let (mut primitives, _world) =
+        mock_primitives_with(&scene, perception, 3, clock.clone()).expect("mock");
+    let mut supervisor = ScriptedSupervisor::default();
+    let r = Runner::new(
+        Arc::new(plan),
+        &mut primitives,
+        &mut supervisor,
+        Arc::new(clock),
+        Some(3),
+    )
+    .run();
+    match &r.outcome {
+        RunOutcome::Failed {
+            class: FailureClass::Insertion,
+            reason: Some(FailureKind::ArmFault { message }),
+            ..
+        } => assert!(message.contains("model: broken.onnx"), "{message}"),
+        other => panic!("{other:?}"),
+    }
+    assert!(
+        r.journal
+            .records()
+            .iter()
+            .any(|e| matches!(e.entry, Entry::Hold { .. }))
+    );
+}
