@@ -31,13 +31,9 @@ fn vec3(v: &serde_json::Value) -> [f64; 3] {
     [0, 1, 2].map(|i| a[i].as_f64().expect("number"))
 }
 
-fn dist(a: [f64; 3], b: [f64; 3]) -> f64 {
-    ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
-}
-
-#[test]
-fn a_rendered_pair_on_disk_gives_the_needle_pose_within_a_millimetre() {
-    let d = dir("needle");
+/// Frame 0 of the own set (seed 1) written by `perceive render` into a fresh directory.
+fn rendered(name: &str) -> PathBuf {
+    let d = dir(name);
     let out = stitch(&[
         "perceive",
         "render",
@@ -49,6 +45,16 @@ fn a_rendered_pair_on_disk_gives_the_needle_pose_within_a_millimetre() {
         s(&d),
     ]);
     assert_eq!(out.status.code(), Some(0), "{}", text(&out.stderr));
+    d
+}
+
+fn dist(a: [f64; 3], b: [f64; 3]) -> f64 {
+    ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
+}
+
+#[test]
+fn a_rendered_pair_on_disk_gives_the_needle_pose_within_a_millimetre() {
+    let d = rendered("needle");
     let calib = d.join("calib.toml");
     let out = stitch(&[
         "perceive",
@@ -103,9 +109,7 @@ fn a_rendered_pair_on_disk_gives_the_needle_pose_within_a_millimetre() {
 
 #[test]
 fn the_disparity_map_is_written_as_pfm_with_the_needle_at_its_depth() {
-    let d = dir("disparity");
-    let out = stitch(&["perceive", "render", "--sample", "0", "--out", s(&d)]);
-    assert_eq!(out.status.code(), Some(0), "{}", text(&out.stderr));
+    let d = rendered("disparity");
     let pfm = d.join("disp.pfm");
     for matcher in ["mask-row", "sgm"] {
         let out = stitch(&[
@@ -494,18 +498,7 @@ mod onnx {
 
     #[test]
     fn the_built_in_model_finds_the_needle_in_a_rendered_pair() {
-        let d = dir("onnx-needle");
-        let out = stitch(&[
-            "perceive",
-            "render",
-            "--sample",
-            "0",
-            "--seed",
-            "1",
-            "--out",
-            s(&d),
-        ]);
-        assert_eq!(out.status.code(), Some(0), "{}", text(&out.stderr));
+        let d = rendered("onnx-needle");
         let out = stitch(&[
             "perceive",
             "needle",
@@ -521,8 +514,7 @@ mod onnx {
         let truth: serde_json::Value =
             serde_json::from_slice(&std::fs::read(d.join("truth.json")).expect("truth"))
                 .expect("JSON");
-        let (a, b) = (vec3(&est["center_m"]), vec3(&truth["center_m"]));
-        let e = ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt();
+        let e = dist(vec3(&est["center_m"]), vec3(&truth["center_m"]));
         assert!(e < 0.002, "centre off by {e} m: {}", text(&out.stdout));
         std::fs::remove_dir_all(&d).ok();
     }
