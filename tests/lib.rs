@@ -5,14 +5,15 @@ use proptest::prelude::*;
 use std::cell::Cell;
 use std::rc::Rc;
 use std::sync::Arc;
+use std::time::Duration;
 use stitch_engine::{
-    CheckpointRequest, Cmp, Condition, End, InterventionRequest, InterventionResult, Node, Plan,
-    Quantity, Report, Runner, ScriptedSupervisor, SourcePos, Step, Supervisor, SupervisorCommand,
-    Target, Throw, TimedCommand, Unit,
+    CheckpointRequest, Cmp, Condition, End, InterventionRequest, InterventionResult, Moment,
+    NextPoll, Node, Plan, Quantity, Report, Runner, ScriptedSupervisor, SourcePos, Step,
+    Supervisor, SupervisorCommand, Target, Throw, TimedCommand, Unit,
 };
 use stitch_primitives::{
     Observation, ObserveRequest, PrimitiveError, Primitives, Scripted, ScriptedPrimitives,
-    StepKind, StepOutcome, StepRequest, Value,
+    StepControl, StepKind, StepOutcome, StepRequest, Value,
 };
 use stitch_robot::{SimClock, Wound, WoundSpec};
 
@@ -197,9 +198,9 @@ struct Counted {
 }
 
 impl Primitives for Counted {
-    fn run(&mut self, req: &StepRequest<'_>) -> StepOutcome {
+    fn run(&mut self, req: &StepRequest<'_>, control: &mut dyn StepControl) -> StepOutcome {
         self.calls.set(self.calls.get() + 1);
-        self.inner.run(req)
+        self.inner.run(req, control)
     }
     fn observe(&mut self, req: &ObserveRequest<'_>) -> Observation {
         self.inner.observe(req)
@@ -217,8 +218,14 @@ struct Noted {
 }
 
 impl Supervisor for Noted {
-    fn poll(&mut self, attempts: usize) -> Option<SupervisorCommand> {
-        self.inner.poll(attempts)
+    fn poll(&mut self, at: &Moment) -> Option<SupervisorCommand> {
+        self.inner.poll(at)
+    }
+    fn next_poll(&self, now: Duration) -> Option<NextPoll> {
+        self.inner.next_poll(now)
+    }
+    fn source(&self) -> &str {
+        self.inner.source()
     }
     fn wait(&mut self) -> Option<SupervisorCommand> {
         self.inner.wait()
@@ -257,7 +264,25 @@ pub fn commands(max: usize) -> impl Strategy<Value = Vec<TimedCommand>> {
     .prop_map(|mut v| {
         v.sort_by_key(|(at, _)| *at);
         v.into_iter()
-            .map(|(at, command)| TimedCommand { at, command })
+            .map(|(at, command)| TimedCommand::before(at, command))
+            .collect()
+    })
+}
+
+/// Supervisor commands at increasing times on the run's clock, s: most land in the middle of
+/// a step (scripted steps take 15 s to 60 s), some between steps.
+pub fn timed_commands(max: usize) -> impl Strategy<Value = Vec<TimedCommand>> {
+    prop::collection::vec(
+        (
+            0.0f64..600.0,
+            prop::sample::select(SupervisorCommand::ALL.to_vec()),
+        ),
+        0..=max,
+    )
+    .prop_map(|mut v| {
+        v.sort_by(|a, b| a.0.total_cmp(&b.0));
+        v.into_iter()
+            .map(|(at_s, command)| TimedCommand::at_time(at_s, command))
             .collect()
     })
 }

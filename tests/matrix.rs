@@ -20,7 +20,7 @@ use stitch_engine::{
 };
 use stitch_primitives::{
     FailureKind, Observation, ObserveRequest, PrimitiveError, Primitives, RobotPrimitives,
-    StepOutcome, StepRequest, mock_primitives,
+    StepControl, StepOutcome, StepRequest, mock_primitives,
 };
 use stitch_robot::{SimClock, Wound};
 use stitch_sim::{
@@ -75,9 +75,9 @@ fn counters(world: &MockDvrk) -> [u32; 5] {
 }
 
 impl Primitives for Probe {
-    fn run(&mut self, req: &StepRequest<'_>) -> StepOutcome {
+    fn run(&mut self, req: &StepRequest<'_>, control: &mut dyn StepControl) -> StepOutcome {
         let before = counters(&self.world);
-        let outcome = self.inner.run(req);
+        let outcome = self.inner.run(req, control);
         self.calls.push(Call::Run {
             primitive: req.kind.name(),
             before,

@@ -169,7 +169,7 @@ proptest! {
             }
             RunOutcome::Aborted { by, .. } => {
                 let asked = run.report.journal.records().iter().any(|r| matches!(r.entry,
-                    Entry::Supervisor { command: SupervisorCommand::Abort | SupervisorCommand::EStop, acted: true }));
+                    Entry::Supervisor { command: SupervisorCommand::Abort | SupervisorCommand::EStop, acted: true, .. }));
                 prop_assert!(asked || *by == AbortCause::SupervisorSilent);
             }
         }
@@ -185,7 +185,7 @@ proptest! {
         let run = run_scripted(plan, outcomes, cmds, ivs);
         let records = run.report.journal.records();
         let stop = records.iter().position(|r| matches!(r.entry,
-            Entry::Supervisor { command: SupervisorCommand::Abort | SupervisorCommand::EStop, acted: true }));
+            Entry::Supervisor { command: SupervisorCommand::Abort | SupervisorCommand::EStop, acted: true, .. }));
         if let Some(stop) = stop {
             prop_assert!(matches!(run.report.outcome, RunOutcome::Aborted { .. }), "{:?}", run.report.outcome);
             let started_before = records[..stop].iter().filter(|r| matches!(r.entry, Entry::StepStart { .. })).count();
@@ -319,7 +319,7 @@ proptest! {
         }
         // Nothing moves after an abort or e-stop, and the arms hold at the end of a stop.
         let stop = records.iter().position(|r| matches!(r.entry,
-            Entry::Supervisor { command: SupervisorCommand::Abort | SupervisorCommand::EStop, acted: true }));
+            Entry::Supervisor { command: SupervisorCommand::Abort | SupervisorCommand::EStop, acted: true, .. }));
         if let Some(stop) = stop {
             let aborted = matches!(run.report.outcome, RunOutcome::Aborted { .. });
             prop_assert!(aborted, "{:?}", run.report.outcome);

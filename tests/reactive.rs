@@ -310,7 +310,8 @@ fn a_checkpoint_holds_the_run_until_the_supervisors_go() {
                 e,
                 Entry::Supervisor {
                     command: SupervisorCommand::Go,
-                    acted: true
+                    acted: true,
+                    ..
                 }
             )
         })

@@ -20,7 +20,7 @@ fn budgets(extract: u8, handover: u8, interventions: u8) -> Budgets {
 }
 
 fn cmd(at: usize, command: SupervisorCommand) -> TimedCommand {
-    TimedCommand { at, command }
+    TimedCommand::before(at, command)
 }
 
 #[test]
@@ -231,7 +231,8 @@ fn take_over_and_hand_back_resume_where_the_surgeon_took_over() {
             r.entry,
             Entry::Supervisor {
                 command: SupervisorCommand::Resume,
-                acted: false
+                acted: false,
+                ..
             }
         )
     });

@@ -3,13 +3,16 @@
 
 use std::io::BufRead;
 use std::sync::mpsc::{Receiver, TryRecvError};
+use std::time::Duration;
 use stitch_engine::{
-    CheckpointRequest, InterventionRequest, InterventionResult, Supervisor, SupervisorCommand,
+    CheckpointRequest, InterventionRequest, InterventionResult, LIVE_POLL, Moment, NextPoll,
+    Supervisor, SupervisorCommand,
 };
 
 /// What the surgeon types: `pause`, `resume`, `abort`, `e-stop`, `take-over`, `hand-back`
-/// at any time (read before the next step), `done` or `failed` to end an intervention, and
-/// `go` to confirm a plan's checkpoint.
+/// at any time (acted on at once, in the middle of a motion too: the engine asks every
+/// [`LIVE_POLL`]), `done` or `failed` to end an intervention, and `go` to confirm a plan's
+/// checkpoint.
 /// End of input (Ctrl-D, a closed pipe) while the run waits on the surgeon aborts it.
 pub struct ConsoleSupervisor {
     lines: Receiver<String>,
@@ -56,8 +59,8 @@ impl ConsoleSupervisor {
         let say = Box::new(|s: &str| eprintln!("{s}"));
         let mut me = Self::new(rx, say);
         (me.say)(&format!(
-            "supervisor: you, at this terminal. Type {COMMANDS} and Enter at any time (read \
-             before the next step); Ctrl-C holds both arms and ends the run."
+            "supervisor: you, at this terminal. Type {COMMANDS} and Enter at any time (acted \
+             on at once, mid-motion too); Ctrl-C holds both arms and ends the run."
         ));
         me
     }
@@ -97,7 +100,15 @@ impl ConsoleSupervisor {
 }
 
 impl Supervisor for ConsoleSupervisor {
-    fn poll(&mut self, _attempts: usize) -> Option<SupervisorCommand> {
+    fn next_poll(&self, _now: Duration) -> Option<NextPoll> {
+        Some(NextPoll::Every(LIVE_POLL))
+    }
+
+    fn source(&self) -> &str {
+        "terminal"
+    }
+
+    fn poll(&mut self, _at: &Moment) -> Option<SupervisorCommand> {
         loop {
             match self.lines.try_recv() {
                 Ok(line) => {
@@ -216,6 +227,14 @@ mod tests {
         (ConsoleSupervisor::new(rx, say), said)
     }
 
+    fn at(attempts: usize) -> Moment {
+        Moment {
+            attempts,
+            now: Duration::ZERO,
+            mid_step: false,
+        }
+    }
+
     fn request() -> InterventionRequest {
         InterventionRequest {
             throw: 1,
@@ -228,9 +247,9 @@ mod tests {
     #[test]
     fn typed_commands_arrive_at_the_next_poll_and_bad_ones_are_explained() {
         let (mut s, said) = console(&["", "  Pause ", "melt", "done", "resume"], false);
-        assert_eq!(s.poll(0), Some(SupervisorCommand::Pause));
-        assert_eq!(s.poll(1), Some(SupervisorCommand::Resume));
-        assert_eq!(s.poll(2), None, "nothing more typed");
+        assert_eq!(s.poll(&at(0)), Some(SupervisorCommand::Pause));
+        assert_eq!(s.poll(&at(1)), Some(SupervisorCommand::Resume));
+        assert_eq!(s.poll(&at(2)), None, "nothing more typed");
         let said = said.lock().expect("said").join("\n");
         assert!(said.contains("unknown supervisor command `melt`"), "{said}");
         assert!(said.contains("none is pending"), "{said}");
@@ -239,9 +258,9 @@ mod tests {
     #[test]
     fn the_end_of_input_mid_run_is_said_at_once_and_once() {
         let (mut s, said) = console(&["pause"], true);
-        assert_eq!(s.poll(0), Some(SupervisorCommand::Pause));
-        assert_eq!(s.poll(1), None);
-        assert_eq!(s.poll(2), None);
+        assert_eq!(s.poll(&at(0)), Some(SupervisorCommand::Pause));
+        assert_eq!(s.poll(&at(1)), None);
+        assert_eq!(s.poll(&at(2)), None);
         let said = said.lock().expect("said").clone();
         let ends = said.iter().filter(|l| l.contains("end of input")).count();
         assert_eq!(ends, 1, "{said:?}");

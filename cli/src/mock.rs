@@ -1,9 +1,10 @@
 //! The supervising surgeon's stand-in on the mock dVRK.
 
 use std::sync::Arc;
+use std::time::Duration;
 use stitch_engine::{
-    CheckpointRequest, InterventionRequest, InterventionResult, NeedleHolder, Plan, Supervisor,
-    SupervisorCommand,
+    CheckpointRequest, InterventionRequest, InterventionResult, Moment, NeedleHolder, NextPoll,
+    Plan, ScriptedSupervisor, Supervisor, SupervisorCommand, TimedCommand,
 };
 use stitch_primitives::StepKind;
 use stitch_sim::{MockDvrk, NeedlePlace};
@@ -12,12 +13,16 @@ use stitch_sim::{MockDvrk, NeedlePlace};
 /// why it could not.
 pub type Recovery = Box<dyn FnMut(NeedlePlace) -> Result<(), String>>;
 
-/// Gives no commands; when the robot asks for help, performs one recovery motion that returns
-/// the workspace to a safe configuration for the failed step (`MockDvrk::recover`) and hands
-/// control back, as the paper's "STITCH + Human" supervisor does.
+/// Gives the commands of its schedule, if it has one (none by default), each at its step or
+/// simulated time, mid-step included; when the robot asks for help, performs one recovery
+/// motion that returns the workspace to a safe configuration for the failed step
+/// (`MockDvrk::recover`) and hands control back, as the paper's "STITCH + Human" supervisor
+/// does.
 pub struct MockSupervisor {
     recover: Recovery,
     plan: Arc<Plan>,
+    commands: ScriptedSupervisor,
+    source: &'static str,
 }
 
 impl std::fmt::Debug for MockSupervisor {
@@ -40,17 +45,38 @@ impl MockSupervisor {
 
     /// A supervisor for `plan` whose recovery motion is `recover` (the sim-node's, over ROS 2).
     pub fn with(recover: Recovery, plan: Arc<Plan>) -> Self {
-        Self { recover, plan }
+        Self {
+            recover,
+            plan,
+            commands: ScriptedSupervisor::default(),
+            source: "mock",
+        }
+    }
+
+    /// The same, giving `commands` (a `--commands` schedule).
+    pub fn commanding(mut self, commands: Vec<TimedCommand>) -> Self {
+        self.commands = ScriptedSupervisor::new(commands, []);
+        self.source = "schedule";
+        self
     }
 }
 
 impl Supervisor for MockSupervisor {
-    fn poll(&mut self, _attempts: usize) -> Option<SupervisorCommand> {
-        None
+    fn poll(&mut self, at: &Moment) -> Option<SupervisorCommand> {
+        self.commands.poll(at)
     }
 
+    fn next_poll(&self, now: Duration) -> Option<NextPoll> {
+        self.commands.next_poll(now)
+    }
+
+    fn source(&self) -> &str {
+        self.source
+    }
+
+    /// The next scheduled command, if any; with none left, the run aborts.
     fn wait(&mut self) -> Option<SupervisorCommand> {
-        None
+        self.commands.wait()
     }
 
     /// The simulated supervisor confirms every checkpoint.

@@ -11,13 +11,13 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 use stitch_dvrk::msg::{JointState, OperatingState, PoseStamped};
 use stitch_engine::{
-    CheckpointRequest, Entry, InterventionRequest, InterventionResult, Loaded, OutcomeSchedule,
-    PlanLoader, Rebuilt, Record, Runner, ScriptLimits, Supervisor, SupervisorCommand, TimedCommand,
-    validate,
+    CheckpointRequest, Entry, InterventionRequest, InterventionResult, Loaded, Moment, NextPoll,
+    OutcomeSchedule, PlanLoader, Rebuilt, Record, Runner, ScriptLimits, Supervisor,
+    SupervisorCommand, TimedCommand, validate,
 };
 use stitch_primitives::{
-    Failure, FailureKind, Measurements, Observation, ObserveRequest, PrimitiveError, Primitives,
-    StepOutcome, StepRequest,
+    Control, Failure, FailureKind, Measurements, Observation, ObserveRequest, PrimitiveError,
+    Primitives, StepControl, StepOutcome, StepRequest,
 };
 use stitch_recorder::{Recorded, RunInfo};
 use stitch_robot::{SimClock, Wound, WoundSpec};
@@ -430,14 +430,29 @@ struct RecordedOutcomes {
 }
 
 impl Primitives for RecordedOutcomes {
-    fn run(&mut self, req: &StepRequest<'_>) -> StepOutcome {
+    /// The attempt takes its recorded time in the slices the control asks for, so recorded
+    /// mid-step commands land again at their times.
+    fn run(&mut self, req: &StepRequest<'_>, control: &mut dyn StepControl) -> StepOutcome {
         let i = self.attempts;
         self.attempts += 1;
         let name = req.kind.name();
         match self.by_kind.get_mut(name).and_then(|q| q.pop_front()) {
             Some((outcome, duration_s)) => {
-                self.clock
-                    .advance(Duration::from_secs_f64(duration_s.max(0.0)));
+                let total = Duration::from_secs_f64(duration_s.max(0.0));
+                let mut done = Duration::ZERO;
+                while done < total {
+                    let slice = control
+                        .slice()
+                        .map_or(total - done, |s| s.min(total - done));
+                    self.clock.advance(slice);
+                    done += slice;
+                    if control.check(&mut || Ok(())) == Control::Stop {
+                        return StepOutcome::Interrupted {
+                            committed: false,
+                            measured: Measurements::default(),
+                        };
+                    }
+                }
                 outcome
             }
             None => {
@@ -502,16 +517,32 @@ struct RecordedSupervisor {
 }
 
 impl Supervisor for RecordedSupervisor {
-    fn poll(&mut self, attempts: usize) -> Option<SupervisorCommand> {
-        self.attempts = attempts;
+    fn poll(&mut self, at: &Moment) -> Option<SupervisorCommand> {
+        self.attempts = at.attempts;
         if self.ran_out.borrow().at.is_some() {
             return Some(SupervisorCommand::Abort);
         }
-        if self.commands.front().is_some_and(|c| c.at <= attempts) {
+        let due = self.commands.front().is_some_and(|c| match c.at_s {
+            // A command that landed mid-step lands again at its time.
+            Some(t) => t <= at.now.as_secs_f64(),
+            None => c.at <= at.attempts && !at.mid_step,
+        });
+        if due {
             self.commands.pop_front().map(|c| c.command)
         } else {
             None
         }
+    }
+
+    fn next_poll(&self, now: Duration) -> Option<NextPoll> {
+        let t = self.commands.front()?.at_s?;
+        Some(NextPoll::In(
+            Duration::from_secs_f64(t.max(0.0)).saturating_sub(now),
+        ))
+    }
+
+    fn source(&self) -> &str {
+        "recording"
     }
 
     fn wait(&mut self) -> Option<SupervisorCommand> {
@@ -606,6 +637,11 @@ fn what_if(rec: &Recording, other: &Path) -> anyhow::Result<u8> {
                 started += 1;
                 started_at = r.t_s;
             }
+            // An attempt the supervisor interrupted is interrupted again by its command.
+            Entry::StepEnd {
+                outcome: StepOutcome::Interrupted { .. },
+                ..
+            } => {}
             Entry::StepEnd {
                 primitive, outcome, ..
             } => by_kind
@@ -613,10 +649,14 @@ fn what_if(rec: &Recording, other: &Path) -> anyhow::Result<u8> {
                 .or_default()
                 .push_back((outcome.clone(), r.t_s - started_at)),
             Entry::InterventionEnded { result, .. } => interventions.push_back(*result),
-            Entry::Supervisor { command, .. } => commands.push_back(TimedCommand {
-                at: started,
-                command: *command,
-            }),
+            Entry::Supervisor {
+                command,
+                during: Some(_),
+                ..
+            } => commands.push_back(TimedCommand::at_time(r.t_s, *command)),
+            Entry::Supervisor { command, .. } => {
+                commands.push_back(TimedCommand::before(started, *command));
+            }
             _ => {}
         }
     }

@@ -165,6 +165,12 @@ fn outcome_text(o: &StepOutcome) -> String {
             }
             s
         }
+        StepOutcome::Interrupted { committed, .. } => if *committed {
+            "INTERRUPTED by the supervisor (past its commit point)"
+        } else {
+            "INTERRUPTED by the supervisor"
+        }
+        .to_string(),
     }
 }
 

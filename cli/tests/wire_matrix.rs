@@ -24,8 +24,8 @@ use stitch_engine::{
     Entry, PlanLoader, Record, RunOutcome, Runner, ScriptLimits, ScriptedSupervisor, load_plan,
 };
 use stitch_primitives::{
-    Observation, ObserveRequest, PrimitiveError, Primitives, RobotPrimitives, StepOutcome,
-    StepRequest, mock_primitives,
+    Observation, ObserveRequest, PrimitiveError, Primitives, RobotPrimitives, StepControl,
+    StepOutcome, StepRequest, mock_primitives,
 };
 use stitch_robot::{Arm, Jaw, MoveHandle, Pose, RobotError, SimClock, SpeedLimits, Wound};
 use stitch_sim::{SceneConfig, SensingConfig};
@@ -102,9 +102,9 @@ struct Windows {
     steps: Vec<(&'static str, u32, u32)>,
 }
 impl Primitives for Windows {
-    fn run(&mut self, req: &StepRequest<'_>) -> StepOutcome {
+    fn run(&mut self, req: &StepRequest<'_>, control: &mut dyn StepControl) -> StepOutcome {
         let before = self.motions.load(Ordering::SeqCst);
-        let out = self.inner.run(req);
+        let out = self.inner.run(req, control);
         let after = self.motions.load(Ordering::SeqCst);
         self.steps.push((req.kind.name(), before, after));
         out

@@ -897,7 +897,6 @@ struct Motion {
     state_seq: u64,
     sent_stamp: f64,
     sent: Instant,
-    done: Mutex<Option<Result<(), RobotError>>>,
 }
 
 impl Motion {
@@ -909,7 +908,6 @@ impl Motion {
             state_seq,
             sent_stamp: now_stamp().as_secs_f64(),
             sent: Instant::now(),
-            done: Mutex::new(None),
         }
     }
 
@@ -1144,26 +1142,75 @@ impl Motion {
     }
 }
 
-impl MotionTracker for Motion {
+/// A motion verified by a thread of its own, so that its caller can wait in slices and act
+/// between them (a supervisor's command mid-move stops it with a hold): the verification
+/// (busy up, busy down, at the goal) runs once, whole, as a single wait would run it.
+#[derive(Debug)]
+struct Watched {
+    motion: Arc<Motion>,
+    result: Arc<(Mutex<Option<Result<(), RobotError>>>, Condvar)>,
+    started: std::sync::Once,
+}
+
+impl Watched {
+    fn new(motion: Motion) -> Self {
+        Self {
+            motion: Arc::new(motion),
+            result: Arc::new((Mutex::new(None), Condvar::new())),
+            started: std::sync::Once::new(),
+        }
+    }
+
+    fn start(&self) {
+        self.started.call_once(|| {
+            let motion = Arc::clone(&self.motion);
+            let result = Arc::clone(&self.result);
+            let verify = move || {
+                let r = motion.run(Duration::MAX);
+                let (slot, ready) = &*result;
+                *slot.lock().unwrap_or_else(PoisonError::into_inner) = Some(r);
+                ready.notify_all();
+            };
+            // Without a thread, the first wait verifies the motion whole.
+            let spawned = std::thread::Builder::new()
+                .name("dvrk-motion".into())
+                .spawn(verify.clone());
+            if spawned.is_err() {
+                verify();
+            }
+        });
+    }
+}
+
+impl MotionTracker for Watched {
     fn is_busy(&self) -> bool {
-        self.done
+        self.result
+            .0
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
             .is_none()
     }
 
     fn wait(&self, timeout: Duration) -> Result<(), RobotError> {
-        let mut done = self.done.lock().unwrap_or_else(PoisonError::into_inner);
-        if let Some(r) = done.as_ref() {
-            return r.clone();
+        self.start();
+        let (slot, ready) = &*self.result;
+        let guard = slot.lock().unwrap_or_else(PoisonError::into_inner);
+        // A day is as long as forever here, and keeps the deadline representable.
+        let limit = timeout.min(Duration::from_secs(86_400));
+        let (guard, _) = ready
+            .wait_timeout_while(guard, limit, |r| r.is_none())
+            .unwrap_or_else(PoisonError::into_inner);
+        match guard.as_ref() {
+            Some(r) => r.clone(),
+            None => Err(RobotError::Timeout {
+                arm: self.motion.link.name.clone(),
+                after_s: timeout.as_secs_f64(),
+            }),
         }
-        let r = self.run(timeout);
-        *done = Some(r.clone());
-        r
     }
 
     fn stop(&self) -> Result<(), RobotError> {
-        self.link.hold()
+        self.motion.link.hold()
     }
 }
 
@@ -1195,7 +1242,7 @@ impl Arm for Ros2Arm {
         self.link.ready()?;
         let motion = Motion::start(&self.link, Goal::Pose(*goal));
         motion.send()?;
-        Ok(MoveHandle::new(Arc::new(motion)))
+        Ok(MoveHandle::new(Arc::new(Watched::new(motion))))
     }
 
     fn servo_cp(&self, goal: &Pose) -> Result<(), RobotError> {
@@ -1246,7 +1293,7 @@ impl Jaw for Ros2Jaw {
             },
         );
         motion.send()?;
-        Ok(MoveHandle::new(Arc::new(motion)))
+        Ok(MoveHandle::new(Arc::new(Watched::new(motion))))
     }
 }
 

@@ -30,7 +30,7 @@ use std::time::{Duration, Instant};
 use stitch_perception::NeedleEstimator;
 use stitch_primitives::ModelEstimator;
 use stitch_primitives::{MockObserver, Observer, PIPELINE_FRAME_TIME_S};
-use stitch_robot::{Arm, Clock, Jaw, Pose, SimClock, StereoCalibration, StereoCamera};
+use stitch_robot::{Arm, Jaw, Pose, SimClock, StereoCalibration, StereoCamera};
 use stitch_sim::{
     CameraConfig, MockCamera, MockDvrk, SceneConfig, SensingConfig, Side, StereoRenderer, Streams,
 };
@@ -938,18 +938,31 @@ impl Node {
             return;
         }
         let side = SIDES[i];
-        let t0 = world.world.clock().now();
         let result = match motion {
-            Motion::Pose(p) => world.world.arm(side).move_cp(&p).map(|_| ()),
-            Motion::Jaw(a) => world.world.jaw(side).move_jp(a).map(|_| ()),
+            Motion::Pose(p) => world.world.arm(side).move_cp(&p),
+            Motion::Jaw(a) => world.world.jaw(side).move_jp(a),
         };
-        let sim_s = (world.world.clock().now() - t0).as_secs_f64();
         self.set_busy(i, true);
-        if let Err(e) = result {
-            self.error(i, &e.to_string(), log);
-        } else {
-            let wall = (sim_s / self.options.time_scale).clamp(0.002, 10.0);
-            self.dwell(i, Duration::from_secs_f64(wall), rx, world, log);
+        match result {
+            Err(e) => self.error(i, &e.to_string(), log),
+            Ok(handle) => {
+                // The motion runs on the world's clock in wall-clock slices of DWELL (scaled
+                // by the time scale), at least 2 ms and at most 10 s in all; a hold of this
+                // arm stops it where it is, mid-move, as on a dVRK.
+                const DWELL: Duration = Duration::from_millis(2);
+                let scale = self.options.time_scale;
+                let started = Instant::now();
+                let held = world.holds[i];
+                let mut first = true;
+                while (handle.is_busy() || first) && world.holds[i] == held {
+                    first = false;
+                    let _ = handle.wait(DWELL.mul_f64(scale));
+                    if started.elapsed() >= Duration::from_secs(10) {
+                        let _ = handle.wait(Duration::MAX);
+                    }
+                    self.dwell(i, DWELL, rx, world, log);
+                }
+            }
         }
         // Idle first, then a measurement stamped after it: what the dVRK's 100 Hz stream
         // gives a client that waits for a measurement newer than the idle state.

@@ -707,10 +707,8 @@ pub fn explore(plan: Arc<Plan>, options: ExploreOptions) -> Exploration {
             let schedule = path.as_ref().map(|p| {
                 let mut s = schedule_of(p.iter().map(|(_, a)| *a));
                 let at = s.outcomes.len();
-                s.supervisor.push(TimedCommand {
-                    at,
-                    command: SupervisorCommand::Abort,
-                });
+                s.supervisor
+                    .push(TimedCommand::before(at, SupervisorCommand::Abort));
                 s
             });
             Verdict {
@@ -879,10 +877,9 @@ pub fn schedule_of(actions: impl IntoIterator<Item = Action>) -> OutcomeSchedule
                 attempts += 1;
             }
             Action::Command(command) => {
-                schedule.supervisor.push(TimedCommand {
-                    at: attempts,
-                    command,
-                });
+                schedule
+                    .supervisor
+                    .push(TimedCommand::before(attempts, command));
             }
             Action::Intervention(r) => schedule.interventions.push(r),
             Action::Decide(v) => schedule.conditions.push(Some(v)),

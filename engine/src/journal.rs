@@ -53,6 +53,28 @@ pub enum RunOutcome {
     },
 }
 
+/// The step attempt a supervisor command landed in.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct During {
+    /// Throw index, 0-based.
+    pub throw: usize,
+    /// Step index, 0-based.
+    pub step: usize,
+    /// Attempt, 0-based.
+    pub attempt: u32,
+    /// Whether the step had passed its commit point.
+    pub committed: bool,
+}
+
+/// Where a command came from and when it landed, for its journal record.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Arrival {
+    /// The supervisor's source.
+    pub from: Option<String>,
+    /// The attempt under way, if mid-step.
+    pub during: Option<During>,
+}
+
 /// One journal line's content.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "event", rename_all = "snake_case")]
@@ -137,12 +159,19 @@ pub enum Entry {
         /// How.
         result: InterventionResult,
     },
-    /// A command from the supervisor reached the machine.
+    /// A command from the supervisor reached the machine (at the record's time).
     Supervisor {
         /// The command.
         command: SupervisorCommand,
         /// Whether the machine acted on it (a resume while running is ignored).
         acted: bool,
+        /// Where it came from (`terminal`, `schedule`, ...), where the runner knows.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        from: Option<String>,
+        /// The step attempt it landed in, if it landed mid-step (else before a step, at a
+        /// checkpoint, or while paused or taken over: the transitions around it say where).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        during: Option<During>,
     },
     /// A plan's condition was decided.
     Condition {

@@ -18,10 +18,10 @@ pub use explore::{
     Action, EngineModel, Exploration, ExploreOptions, ExploreState, Needle, PROPERTY_NAMES,
     Verdict, Violation, World, explore, mermaid, schedule_of,
 };
-pub use journal::{AbortCause, Entry, Journal, JournalSink, Record, RunOutcome};
+pub use journal::{AbortCause, Arrival, During, Entry, Journal, JournalSink, Record, RunOutcome};
 pub use machine::{
-    Counters, Ctx, Cursor, Effect, Event, Mission, Pending, State, pending, recovery_condition,
-    state_label, state_parts,
+    Counters, Ctx, Cursor, Effect, Event, Interrupted, Mission, Pending, State, pending,
+    recovery_condition, state_label, state_parts,
 };
 pub use plan::{
     BranchRole, FailureClass, NeedleHolder, Node, Op, Plan, PlanError, PlanErrors, SourcePos, Step,
@@ -29,13 +29,14 @@ pub use plan::{
 };
 pub use reference::{REFERENCE_BEGIN, REFERENCE_END, reference_markdown};
 pub use runner::{
-    Attempt, CheckpointSeen, Decision, PlanHeader, Rebuilt, Report, Runner, ThrowSummary, UnderWay,
+    Attempt, AttemptSink, CheckpointSeen, Decision, PlanHeader, Rebuilt, Report, Runner,
+    ThrowSummary, UnderWay,
 };
 pub use schedule::{OutcomeSchedule, ScheduleError};
 pub use script::{API, Angle, Length, Loaded, PlanLoader, ScriptLimits, Time};
 pub use supervisor::{
-    CheckpointRequest, InterventionRequest, InterventionResult, ScriptedSupervisor, Supervisor,
-    SupervisorCommand, TimedCommand,
+    CheckpointRequest, InterventionRequest, InterventionResult, LIVE_POLL, Moment, NextPoll,
+    ScriptedSupervisor, Supervisor, SupervisorCommand, TimedCommand,
 };
 pub use validate::{retry_cap, validate};
 

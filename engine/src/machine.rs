@@ -9,8 +9,10 @@
 //! │       ├── deciding            (a plan's condition: when, repeat's until)
 //! │       ├── at_checkpoint       (the arms hold until the surgeon says go)
 //! │       └── awaiting_intervention
-//! ├── paused                      resume → the step that was next
-//! └── taken_over                  hand-back → the step that was next
+//! ├── paused                      resume → the step that was next, or the one interrupted
+//! │                               (which goes on where it stopped)
+//! └── taken_over                  hand-back → the step that was next, the interrupted one
+//!                                 from its start, or (past its commit point) the one after
 //! ready → (start) → first step;   completed · failed · aborted are final
 //! ```
 //!
@@ -19,7 +21,7 @@
 //! can exceed them whatever it asks for.
 
 use crate::condition::{MissionFacts, Quantity};
-use crate::journal::{AbortCause, Entry, Journal};
+use crate::journal::{AbortCause, Arrival, Entry, Journal};
 use crate::plan::{FailureClass, Op, Plan, caps};
 use crate::supervisor::{InterventionResult, SupervisorCommand};
 use serde::Serialize;
@@ -53,6 +55,40 @@ pub enum Event {
     Supervisor(SupervisorCommand),
     /// The supervisor is gone (no command will come while paused or taken over).
     SupervisorLost,
+    /// The supervisor commanded while the step the machine is in was under way (its motion
+    /// stopped at the command; `committed`: the step had passed its commit point).
+    Interrupt {
+        /// The command.
+        command: SupervisorCommand,
+        /// Whether the step had passed its commit point.
+        committed: bool,
+    },
+}
+
+/// Where the run was when the supervisor paused it or took over.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Interrupted {
+    /// Before a step attempt (or at a checkpoint): nothing was under way.
+    #[default]
+    Between,
+    /// In the middle of a step, before its commit point: resumed, it goes on where it
+    /// stopped; handed back after a take-over, it runs again from its start.
+    MidStep,
+    /// In the middle of a step past its commit point: resumed, it goes on; handed back after a
+    /// take-over, the run goes on with the step after it (the surgeon finished it).
+    Committed,
+}
+
+impl Interrupted {
+    /// Mid-step, committed or not.
+    pub fn mid_step(committed: bool) -> Self {
+        if committed {
+            Interrupted::Committed
+        } else {
+            Interrupted::MidStep
+        }
+    }
 }
 
 /// Side effects the machine asks of the runner, in order.
@@ -69,6 +105,8 @@ pub struct Ctx {
     pub journal: Journal,
     /// Effects the runner must perform after this dispatch.
     pub effects: Vec<Effect>,
+    /// Where the command being dispatched came from, for its journal record.
+    pub arrival: Arrival,
 }
 
 /// The mission's counters that conditions may read and that decide the machine's behaviour
@@ -273,8 +311,17 @@ impl Mission {
                 }
                 return Transition(self.next_state(c));
             }
-            StepOutcome::Failed(f) => f,
+            StepOutcome::Failed(f) => f.clone(),
+            // The runner never reports an interrupted attempt as an outcome (the command
+            // moved the machine); one that came would be a bug, failed safely.
+            StepOutcome::Interrupted { measured, .. } => Failure {
+                kind: FailureKind::ArmFault {
+                    message: "engine: an interrupted attempt reported as an outcome".into(),
+                },
+                measured: measured.clone(),
+            },
         };
+        let failure = &failure;
         self.last_failure = Some(failure.clone());
         let class = self.classify(c, &failure.kind);
         let name = self.step_kind(c).map_or("?", StepKind::name).to_string();
@@ -347,12 +394,20 @@ pub fn recovery_condition(kind: &StepKind, failure: &Failure) -> bool {
     }
 }
 
-/// Abort or e-stop: journal the command and end the run at `cursor`.
-fn stop(ctx: &mut Ctx, command: SupervisorCommand, cursor: Cursor) -> Outcome<State> {
+/// Journal a command, with where it came from and where it landed.
+fn journal_command(ctx: &mut Ctx, command: SupervisorCommand, acted: bool) {
+    let Arrival { from, during } = std::mem::take(&mut ctx.arrival);
     ctx.journal.push(Entry::Supervisor {
         command,
-        acted: true,
+        acted,
+        from,
+        during,
     });
+}
+
+/// Abort or e-stop: journal the command and end the run at `cursor`.
+fn stop(ctx: &mut Ctx, command: SupervisorCommand, cursor: Cursor) -> Outcome<State> {
+    journal_command(ctx, command, true);
     let by = if command == SupervisorCommand::EStop {
         AbortCause::EStop
     } else {
@@ -363,17 +418,11 @@ fn stop(ctx: &mut Ctx, command: SupervisorCommand, cursor: Cursor) -> Outcome<St
 
 /// Journal a command the machine acts on.
 fn acted(ctx: &mut Ctx, command: SupervisorCommand) {
-    ctx.journal.push(Entry::Supervisor {
-        command,
-        acted: true,
-    });
+    journal_command(ctx, command, true);
 }
 
 fn supervisor_ignored(ctx: &mut Ctx, command: SupervisorCommand) -> Outcome<State> {
-    ctx.journal.push(Entry::Supervisor {
-        command,
-        acted: false,
-    });
+    journal_command(ctx, command, false);
     Handled
 }
 
@@ -538,18 +587,41 @@ impl Mission {
         }
     }
 
-    /// A throw in progress: the supervisor may pause or take over before any step.
+    /// A throw in progress: the supervisor may pause or take over before any step, or in the
+    /// middle of one (an interrupt: the step's motion was stopped at the command).
     #[superstate(superstate = "mission")]
     fn throw(cursor: &mut Cursor, context: &mut Ctx, event: &Event) -> Outcome<State> {
         match event {
             Event::Supervisor(SupervisorCommand::Pause) => {
                 acted(context, SupervisorCommand::Pause);
-                Transition(State::paused(*cursor))
+                Transition(State::paused(*cursor, Interrupted::Between))
             }
             Event::Supervisor(SupervisorCommand::TakeOver) => {
                 acted(context, SupervisorCommand::TakeOver);
-                Transition(State::taken_over(*cursor))
+                Transition(State::taken_over(*cursor, Interrupted::Between))
             }
+            Event::Interrupt {
+                command: SupervisorCommand::Pause,
+                committed,
+            } => {
+                acted(context, SupervisorCommand::Pause);
+                Transition(State::paused(*cursor, Interrupted::mid_step(*committed)))
+            }
+            Event::Interrupt {
+                command: SupervisorCommand::TakeOver,
+                committed,
+            } => {
+                acted(context, SupervisorCommand::TakeOver);
+                Transition(State::taken_over(
+                    *cursor,
+                    Interrupted::mid_step(*committed),
+                ))
+            }
+            Event::Interrupt {
+                command: c @ (SupervisorCommand::Abort | SupervisorCommand::EStop),
+                ..
+            } => stop(context, *c, *cursor),
+            Event::Interrupt { command: c, .. } => supervisor_ignored(context, *c),
             Event::Supervisor(
                 c @ (SupervisorCommand::Resume
                 | SupervisorCommand::HandBack
@@ -566,9 +638,16 @@ impl Mission {
         Super
     }
 
-    /// Paused by the supervisor; the arms hold.
+    /// Paused by the supervisor; the arms hold. Resumed, the run goes on with the step at the
+    /// cursor: the next one, or the one interrupted, which goes on where it stopped.
     #[state(superstate = "supervised", entry_action = "hold_arms")]
-    fn paused(&mut self, cursor: &mut Cursor, context: &mut Ctx, event: &Event) -> Outcome<State> {
+    fn paused(
+        &mut self,
+        cursor: &mut Cursor,
+        at: &mut Interrupted,
+        context: &mut Ctx,
+        event: &Event,
+    ) -> Outcome<State> {
         match event {
             Event::Supervisor(SupervisorCommand::Resume) => {
                 acted(context, SupervisorCommand::Resume);
@@ -576,7 +655,7 @@ impl Mission {
             }
             Event::Supervisor(SupervisorCommand::TakeOver) => {
                 acted(context, SupervisorCommand::TakeOver);
-                Transition(State::taken_over(*cursor))
+                Transition(State::taken_over(*cursor, *at))
             }
             Event::Supervisor(c @ (SupervisorCommand::Pause | SupervisorCommand::HandBack)) => {
                 supervisor_ignored(context, *c)
@@ -585,18 +664,24 @@ impl Mission {
         }
     }
 
-    /// The surgeon teleoperates; the engine commands nothing.
+    /// The surgeon teleoperates; the engine commands nothing. Handed back, the run goes on
+    /// with the step at the cursor from its start (the next one, or the one interrupted), or,
+    /// where the interrupted step had passed its commit point, with the step after it.
     #[state(superstate = "supervised", entry_action = "hold_arms")]
     fn taken_over(
         &mut self,
         cursor: &mut Cursor,
+        at: &mut Interrupted,
         context: &mut Ctx,
         event: &Event,
     ) -> Outcome<State> {
         match event {
             Event::Supervisor(SupervisorCommand::HandBack) => {
                 acted(context, SupervisorCommand::HandBack);
-                Transition(self.step_state(*cursor))
+                Transition(match at {
+                    Interrupted::Committed => self.next_state(*cursor),
+                    Interrupted::Between | Interrupted::MidStep => self.step_state(*cursor),
+                })
             }
             Event::Supervisor(
                 c @ (SupervisorCommand::Pause
@@ -700,17 +785,32 @@ pub fn pending(state: &State) -> Pending {
         State::AwaitingIntervention { cursor, class } => Pending::Intervention(*cursor, *class),
         State::Deciding { cursor } => Pending::Decide(*cursor),
         State::AtCheckpoint { cursor } => Pending::Checkpoint(*cursor),
-        State::Paused { cursor } | State::TakenOver { cursor } => Pending::Command(*cursor),
+        State::Paused { cursor, .. } | State::TakenOver { cursor, .. } => Pending::Command(*cursor),
         State::Completed {} | State::Failed { .. } | State::Aborted { .. } => Pending::Done,
     }
 }
 
 /// A state's name with its cursor, as the journal writes it: `extracting(t1 s3 r0)` (throw
 /// and step 1-based, retries so far).
+/// Paused or taken over mid-step says so: `paused(t1 s3 r0 mid-step)`, `taken_over(t1 s3 r0
+/// committed)`.
 pub fn state_label(state: &State) -> String {
     let (name, cursor) = state_parts(state);
+    let mid = match state {
+        State::Paused { at, .. } | State::TakenOver { at, .. } => match at {
+            Interrupted::Between => "",
+            Interrupted::MidStep => " mid-step",
+            Interrupted::Committed => " committed",
+        },
+        _ => "",
+    };
     match cursor {
-        Some(c) => format!("{name}(t{} s{} r{})", c.throw + 1, c.step + 1, c.retries),
+        Some(c) => format!(
+            "{name}(t{} s{} r{}{mid})",
+            c.throw + 1,
+            c.step + 1,
+            c.retries
+        ),
         None => name.to_string(),
     }
 }
@@ -729,8 +829,8 @@ pub fn state_parts(state: &State) -> (&'static str, Option<Cursor>) {
         State::AwaitingIntervention { cursor, .. } => ("awaiting_intervention", Some(*cursor)),
         State::Deciding { cursor } => ("deciding", Some(*cursor)),
         State::AtCheckpoint { cursor } => ("at_checkpoint", Some(*cursor)),
-        State::Paused { cursor } => ("paused", Some(*cursor)),
-        State::TakenOver { cursor } => ("taken_over", Some(*cursor)),
+        State::Paused { cursor, .. } => ("paused", Some(*cursor)),
+        State::TakenOver { cursor, .. } => ("taken_over", Some(*cursor)),
         State::Completed {} => ("completed", None),
         State::Failed { cursor, .. } => ("failed", Some(*cursor)),
         State::Aborted { cursor, .. } => ("aborted", Some(*cursor)),

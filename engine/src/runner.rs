@@ -3,20 +3,26 @@
 //! summary.
 
 use crate::condition::Facts;
-use crate::journal::{Entry, Journal, RunOutcome};
+use crate::journal::{Arrival, During, Entry, Journal, RunOutcome};
 use crate::machine::{
     Ctx, Cursor, Effect, Event, Mission, Pending, State, pending, state_label, state_parts,
 };
 use crate::plan::{NeedleHolder, Op, Plan};
-use crate::supervisor::{CheckpointRequest, InterventionRequest, InterventionResult, Supervisor};
+use crate::supervisor::{
+    CheckpointRequest, InterventionRequest, InterventionResult, Moment, NextPoll, Supervisor,
+};
 use serde::Serialize;
 use statig::blocking::{InitializedStateMachine, IntoStateMachineExt};
 use std::sync::Arc;
+use std::time::Duration;
 use stitch_primitives::{
-    Failure, FailureKind, Measurements, NeedleAt, ObserveRequest, Primitives, StepOutcome,
-    StepRequest,
+    Control, Failure, FailureKind, Measurements, NeedleAt, ObserveRequest, PrimitiveError,
+    Primitives, StepControl, StepOutcome, StepRequest,
 };
 use stitch_robot::Clock;
+
+/// Something told of each step attempt as it ends (a live timeline), with its throw index.
+pub type AttemptSink = Box<dyn FnMut(usize, &Attempt)>;
 
 /// One step attempt as the runner saw it, for timelines.
 #[derive(Clone, Debug, PartialEq, Serialize)]
@@ -109,6 +115,8 @@ pub struct Runner<'a> {
     attempts_started: usize,
     /// Where the plan has the needle before each operation (for a condition's query).
     holders: Vec<Vec<Option<NeedleHolder>>>,
+    /// Told of each attempt as it ends.
+    on_attempt: Option<AttemptSink>,
 }
 
 impl std::fmt::Debug for Runner<'_> {
@@ -152,7 +160,14 @@ impl<'a> Runner<'a> {
             throws,
             attempts_started: 0,
             holders,
+            on_attempt: None,
         }
+    }
+
+    /// Tell `sink` of each step attempt as it ends (a timeline printed as the run goes).
+    pub fn on_attempt(mut self, sink: AttemptSink) -> Self {
+        self.on_attempt = Some(sink);
+        self
     }
 
     /// Stream every record to `sink` (if any) as it is journaled (a flight recorder), those
@@ -170,20 +185,28 @@ impl<'a> Runner<'a> {
     }
 
     fn dispatch(&mut self, event: Event) {
-        self.ctx.journal.set_now(self.clock.now());
-        self.machine.handle_with_context(&event, &mut self.ctx);
-        for effect in std::mem::take(&mut self.ctx.effects) {
-            match effect {
-                Effect::HoldArms => {
-                    let error = self.primitives.hold_all().err().map(|e| e.to_string());
-                    self.ctx.journal.set_now(self.clock.now());
-                    self.ctx.journal.push(Entry::Hold {
-                        state: state_label(self.machine.state()),
-                        error,
-                    });
-                }
-            }
-        }
+        let primitives = &mut *self.primitives;
+        dispatch(
+            &mut self.machine,
+            &mut self.ctx,
+            &*self.clock,
+            &mut || primitives.hold_all(),
+            event,
+        );
+    }
+
+    /// Journal a command's source before it is dispatched.
+    fn arriving(&mut self) {
+        self.ctx.arrival = Arrival {
+            from: Some(self.supervisor.source().to_string()),
+            during: None,
+        };
+    }
+
+    /// The supervisor's next command while the run waits on it (paused, taken over): a
+    /// schedule's timed command is waited for on the run's clock.
+    fn wait_command(&mut self) -> Event {
+        wait_command(&mut *self.supervisor, &*self.clock, &mut self.ctx)
     }
 
     /// Run to the end: completed, failed or aborted.
@@ -193,10 +216,7 @@ impl<'a> Runner<'a> {
                 Pending::Done => break,
                 Pending::Start => self.dispatch(Event::Start),
                 Pending::Command(_) => {
-                    let event = match self.supervisor.wait() {
-                        Some(command) => Event::Supervisor(command),
-                        None => Event::SupervisorLost,
-                    };
+                    let event = self.wait_command();
                     self.dispatch(event);
                 }
                 Pending::Intervention(c, class) => {
@@ -217,7 +237,13 @@ impl<'a> Runner<'a> {
                 }
                 Pending::Attempt(c) => {
                     // The supervisor may speak before every attempt.
-                    if let Some(command) = self.supervisor.poll(self.attempts_started) {
+                    let moment = Moment {
+                        attempts: self.attempts_started,
+                        now: self.clock.now(),
+                        mid_step: false,
+                    };
+                    if let Some(command) = self.supervisor.poll(&moment) {
+                        self.arriving();
                         self.dispatch(Event::Supervisor(command));
                         continue;
                     }
@@ -251,7 +277,10 @@ impl<'a> Runner<'a> {
                         });
                     }
                     let event = match answer {
-                        Some(command) => Event::Supervisor(command),
+                        Some(command) => {
+                            self.arriving();
+                            Event::Supervisor(command)
+                        }
                         None => Event::SupervisorLost,
                     };
                     self.dispatch(event);
@@ -383,13 +412,29 @@ impl<'a> Runner<'a> {
             attempt,
         });
         self.attempts_started += 1;
-        let outcome = self.primitives.run(&StepRequest {
+        let request = StepRequest {
             throw: c.throw,
             step: c.step,
             point: &throw.point,
             kind: &step.kind,
             attempt,
-        });
+        };
+        let mut live = Live {
+            machine: &mut self.machine,
+            ctx: &mut self.ctx,
+            supervisor: &mut *self.supervisor,
+            clock: &*self.clock,
+            during: During {
+                throw: c.throw,
+                step: c.step,
+                attempt,
+                committed: false,
+            },
+            attempts: self.attempts_started,
+            stopped: false,
+        };
+        let outcome = self.primitives.run(&request, &mut live);
+        let stopped = live.stopped;
         let end = self.clock.now();
         self.ctx.journal.set_now(end);
         self.ctx.journal.push(Entry::StepEnd {
@@ -400,7 +445,7 @@ impl<'a> Runner<'a> {
             outcome: outcome.clone(),
         });
         let summary = &mut self.throws[c.throw];
-        summary.attempts.push(Attempt {
+        let seen = Attempt {
             step: c.step,
             primitive: step.kind.name(),
             attempt,
@@ -408,7 +453,27 @@ impl<'a> Runner<'a> {
             duration_s: end.saturating_sub(start).as_secs_f64(),
             outcome: outcome.clone(),
             intervention: None,
-        });
+        };
+        if let Some(sink) = self.on_attempt.as_mut() {
+            sink(c.throw, &seen);
+        }
+        summary.attempts.push(seen);
+        if stopped {
+            // The supervisor ended the attempt; the machine already went where the command
+            // leads (taken over, aborted).
+            return;
+        }
+        let outcome = match outcome {
+            // Only a command ends an attempt early; a primitive that says otherwise is a
+            // bug, failed safely.
+            StepOutcome::Interrupted { measured, .. } => StepOutcome::Failed(Failure {
+                kind: FailureKind::ArmFault {
+                    message: "engine: the step stopped with no command to stop it".into(),
+                },
+                measured,
+            }),
+            o => o,
+        };
         self.dispatch(Event::StepFinished(outcome));
         self.note_throw_left(c.throw);
     }
@@ -456,6 +521,125 @@ impl<'a> Runner<'a> {
                 journal.stop_streaming();
                 journal
             },
+        }
+    }
+}
+
+/// Dispatch `event`, then perform the effects the machine asks for (`hold`: stop every motion
+/// and hold both arms).
+fn dispatch(
+    machine: &mut InitializedStateMachine<Mission>,
+    ctx: &mut Ctx,
+    clock: &dyn Clock,
+    hold: &mut dyn FnMut() -> Result<(), PrimitiveError>,
+    event: Event,
+) {
+    ctx.journal.set_now(clock.now());
+    machine.handle_with_context(&event, ctx);
+    for effect in std::mem::take(&mut ctx.effects) {
+        match effect {
+            Effect::HoldArms => {
+                let error = hold().err().map(|e| e.to_string());
+                ctx.journal.set_now(clock.now());
+                ctx.journal.push(Entry::Hold {
+                    state: state_label(machine.state()),
+                    error,
+                });
+            }
+        }
+    }
+}
+
+/// The supervisor's next command while the run waits on it; a schedule's timed command is
+/// waited for on the run's clock (a simulated one advances to it).
+fn wait_command(supervisor: &mut dyn Supervisor, clock: &dyn Clock, ctx: &mut Ctx) -> Event {
+    if let Some(NextPoll::In(d)) = supervisor.next_poll(clock.now()) {
+        clock.sleep(d);
+    }
+    match supervisor.wait() {
+        Some(command) => {
+            ctx.arrival = Arrival {
+                from: Some(supervisor.source().to_string()),
+                during: None,
+            };
+            Event::Supervisor(command)
+        }
+        None => Event::SupervisorLost,
+    }
+}
+
+/// What a running step asks of the engine: the supervisor's commands, heard mid-step.
+struct Live<'r> {
+    machine: &'r mut InitializedStateMachine<Mission>,
+    ctx: &'r mut Ctx,
+    supervisor: &'r mut dyn Supervisor,
+    clock: &'r dyn Clock,
+    during: During,
+    attempts: usize,
+    /// The supervisor ended the attempt (take-over, abort, e-stop, gone while paused).
+    stopped: bool,
+}
+
+impl Live<'_> {
+    /// Whether the machine is (back) in the step this attempt runs.
+    fn in_step(&self) -> bool {
+        matches!(pending(self.machine.state()), Pending::Attempt(c)
+            if c.throw == self.during.throw && c.step == self.during.step)
+    }
+}
+
+impl StepControl for Live<'_> {
+    fn slice(&mut self) -> Option<Duration> {
+        match self.supervisor.next_poll(self.clock.now())? {
+            NextPoll::In(d) => Some(d),
+            // A person's command is waited for at most this much wall time: on a paced
+            // simulated clock that much simulated time at its pace, unpaced the same.
+            NextPoll::Every(w) => Some(w.mul_f64(self.clock.pace().unwrap_or(1.0))),
+        }
+    }
+
+    fn commit(&mut self) {
+        self.during.committed = true;
+    }
+
+    fn check(&mut self, hold: &mut dyn FnMut() -> Result<(), PrimitiveError>) -> Control {
+        if self.stopped {
+            return Control::Stop;
+        }
+        let moment = Moment {
+            attempts: self.attempts,
+            now: self.clock.now(),
+            mid_step: true,
+        };
+        let Some(command) = self.supervisor.poll(&moment) else {
+            return Control::Go;
+        };
+        self.ctx.arrival = Arrival {
+            from: Some(self.supervisor.source().to_string()),
+            during: Some(self.during),
+        };
+        let event = Event::Interrupt {
+            command,
+            committed: self.during.committed,
+        };
+        dispatch(self.machine, self.ctx, self.clock, hold, event);
+        let mut paused = false;
+        loop {
+            if self.in_step() {
+                return if paused {
+                    Control::Resumed
+                } else {
+                    Control::Go
+                };
+            }
+            if !matches!(self.machine.state(), State::Paused { .. }) {
+                // Taken over, aborted: the attempt ends here.
+                self.stopped = true;
+                return Control::Stop;
+            }
+            paused = true;
+            let event = wait_command(self.supervisor, self.clock, self.ctx);
+            dispatch(self.machine, self.ctx, self.clock, hold, event);
         }
     }
 }

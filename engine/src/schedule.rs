@@ -1,6 +1,7 @@
 //! Outcome schedules: the file `stitch run --robot scripted --outcomes FILE` replays. It
 //! says, in order, how each step attempt ends, which supervisor commands arrive before which
-//! attempt, and how each requested intervention ends.
+//! attempt (`at`) or at which time on the run's clock, mid-step included (`at_s`), and how each
+//! requested intervention ends.
 //!
 //! ```json
 //! {
@@ -25,7 +26,7 @@ use stitch_primitives::{Scripted, ScriptedPrimitives};
 use stitch_robot::SimClock;
 
 /// A whole outcome schedule.
-#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct OutcomeSchedule {
     /// How each step attempt ends, in order.

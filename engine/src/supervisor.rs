@@ -1,10 +1,11 @@
-//! The supervising surgeon, as the engine sees them: commands between steps, and
-//! interventions the robot requests.
+//! The supervising surgeon, as the engine sees them: commands at any moment (between steps,
+//! and in the middle of one while it moves), and interventions the robot requests.
 
 use serde::{Deserialize, Serialize};
 use std::collections::VecDeque;
 use std::fmt;
 use std::str::FromStr;
+use std::time::Duration;
 
 use crate::plan::FailureClass;
 
@@ -101,12 +102,49 @@ pub struct InterventionRequest {
     pub class: FailureClass,
 }
 
+/// When the engine asks a supervisor for a command.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Moment {
+    /// How many step attempts the run has started.
+    pub attempts: usize,
+    /// The run's time (simulated, or the robot's), since its start.
+    pub now: Duration,
+    /// Whether a step attempt is under way (asked between its motions, or during one), or
+    /// the run is between steps (asked before the next attempt).
+    pub mid_step: bool,
+}
+
+/// When a supervisor wants to be asked again while a step runs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum NextPoll {
+    /// After this much time on the run's clock (a command scheduled at a simulated time).
+    In(Duration),
+    /// Every this much wall-clock time (a person, whose commands come whenever they come;
+    /// on a paced simulated clock the engine turns it into simulated time).
+    Every(Duration),
+}
+
+/// How often the engine asks a person's supervisor for a command while a step moves: the
+/// bound, in wall-clock time, on how long a command waits before the arms hold.
+pub const LIVE_POLL: Duration = Duration::from_millis(2);
+
 /// The supervising surgeon. A real one sits at the console; [`ScriptedSupervisor`] follows a
 /// schedule in tests and simulated runs.
 pub trait Supervisor {
-    /// A command given since the last poll, if any; asked before every step attempt.
-    /// `attempts` is how many step attempts the run has started.
-    fn poll(&mut self, attempts: usize) -> Option<SupervisorCommand>;
+    /// A command given since the last poll, if any: asked before every step attempt, and
+    /// while one runs, between its motions and every [`Supervisor::next_poll`] during one.
+    fn poll(&mut self, at: &Moment) -> Option<SupervisorCommand>;
+
+    /// When to ask again while a step runs (`None`: not before the step ends).
+    fn next_poll(&self, now: Duration) -> Option<NextPoll> {
+        let _ = now;
+        None
+    }
+
+    /// Where the commands come from, as the journal records it: `terminal`, `schedule`, ...
+    fn source(&self) -> &str {
+        "supervisor"
+    }
 
     /// Wait for the next command while the run is paused or taken over; `None` means the
     /// supervisor is gone and the run must abort.
@@ -132,20 +170,56 @@ pub struct CheckpointRequest {
     pub label: String,
 }
 
-/// A command scheduled before a given step attempt.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+/// A command scheduled before a given step attempt, or at a time on the run's clock.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct TimedCommand {
-    /// Delivered at the first poll once this many step attempts have started.
+    /// Delivered before a step attempt, at the first poll between steps once this many step
+    /// attempts have started (with `at_s`: not before then).
+    #[serde(default)]
     pub at: usize,
+    /// Delivered at the first poll at or after this time on the run's clock, s: in the
+    /// middle of a step (and its motion) as well as between steps.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub at_s: Option<f64>,
     /// The command.
     pub command: SupervisorCommand,
 }
 
+impl TimedCommand {
+    /// `command` before the attempt once `at` attempts have started.
+    pub fn before(at: usize, command: SupervisorCommand) -> Self {
+        Self {
+            at,
+            at_s: None,
+            command,
+        }
+    }
+
+    /// `command` at `at_s` seconds on the run's clock, mid-step or not.
+    pub fn at_time(at_s: f64, command: SupervisorCommand) -> Self {
+        Self {
+            at: 0,
+            at_s: Some(at_s),
+            command,
+        }
+    }
+
+    /// When it is due on the run's clock, if it is timed.
+    fn due(&self) -> Option<Duration> {
+        self.at_s
+            .map(|s| Duration::try_from_secs_f64(s.max(0.0)).unwrap_or(Duration::MAX))
+    }
+}
+
 /// A supervisor that follows a schedule.
 ///
-/// Commands are delivered in order, each at the first poll once `at` step attempts have
-/// started. While paused or taken over, the next scheduled command is delivered whatever its
-/// `at`; once the schedule is empty the supervisor is silent and the run aborts, arms held.
+/// Commands are delivered in order: one with only `at`, at the first poll between steps once
+/// `at` step attempts have started; one with `at_s`, at the first poll at or after that time
+/// (between steps or mid-step), once `at` attempts have started. While paused or taken over,
+/// the next scheduled command is delivered whatever its `at` (at its `at_s`: the engine lets
+/// the run's clock reach it); once the schedule is empty the supervisor is silent and the run
+/// aborts, arms held.
 /// Interventions end as the `interventions` list says, `Recovered` once it is exhausted;
 /// checkpoints are answered as the `checkpoints` list says, `go` once it is exhausted.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -157,6 +231,8 @@ pub struct ScriptedSupervisor {
     pub requests: Vec<InterventionRequest>,
     /// Every checkpoint reached, in order.
     pub checkpoints_reached: Vec<CheckpointRequest>,
+    /// Attempts started at the last poll.
+    attempts: usize,
 }
 
 impl ScriptedSupervisor {
@@ -171,6 +247,7 @@ impl ScriptedSupervisor {
             checkpoints: VecDeque::new(),
             requests: Vec::new(),
             checkpoints_reached: Vec::new(),
+            attempts: 0,
         }
     }
 
@@ -185,12 +262,30 @@ impl ScriptedSupervisor {
 }
 
 impl Supervisor for ScriptedSupervisor {
-    fn poll(&mut self, attempts: usize) -> Option<SupervisorCommand> {
-        if self.commands.front().is_some_and(|c| c.at <= attempts) {
+    fn poll(&mut self, at: &Moment) -> Option<SupervisorCommand> {
+        self.attempts = at.attempts;
+        let due = self.commands.front().is_some_and(|c| {
+            c.at <= at.attempts
+                && match c.due() {
+                    Some(t) => t <= at.now,
+                    None => !at.mid_step,
+                }
+        });
+        if due {
             self.commands.pop_front().map(|c| c.command)
         } else {
             None
         }
+    }
+
+    fn next_poll(&self, now: Duration) -> Option<NextPoll> {
+        let c = self.commands.front()?;
+        let due = c.due()?;
+        (c.at <= self.attempts).then(|| NextPoll::In(due.saturating_sub(now)))
+    }
+
+    fn source(&self) -> &str {
+        "schedule"
     }
 
     fn wait(&mut self) -> Option<SupervisorCommand> {

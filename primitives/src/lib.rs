@@ -22,6 +22,7 @@ pub use robot::{
 pub use scripted::{Call, OutcomeModel, SCRIPTED_TOKENS, Scripted, ScriptedPrimitives};
 
 use serde::{Deserialize, Serialize};
+use std::time::Duration;
 use stitch_robot::{Point, Vector, WoundPoint};
 
 /// What the engine asks a primitive to do: one attempt at one step of one throw.
@@ -116,7 +117,11 @@ pub struct Observation {
 pub trait Primitives {
     /// Run one attempt of one step and report its outcome. Robot errors during the step are
     /// reported as a [`FailureKind::ArmFault`] failure, after the arms were made to hold.
-    fn run(&mut self, req: &StepRequest<'_>) -> StepOutcome;
+    /// While it runs it asks `control` whether to go on, between motions and during each
+    /// one (every [`StepControl::slice`]): the supervisor may pause it (the arms hold, then
+    /// it goes on where it stopped), or end it ([`StepOutcome::Interrupted`]: the arms hold
+    /// and it commands nothing more).
+    fn run(&mut self, req: &StepRequest<'_>, control: &mut dyn StepControl) -> StepOutcome;
 
     /// Observe for a plan's condition: a needle query if asked (one estimator cycle, no
     /// motion) and the arms' measured poses. Never fails: what could not be seen is absent.
@@ -125,6 +130,51 @@ pub trait Primitives {
     /// Stop every motion and hold both arms where they are. Called on pause, take-over,
     /// abort, e-stop and at the end of a failed run.
     fn hold_all(&mut self) -> Result<(), PrimitiveError>;
+}
+
+/// What a primitive asks of whoever runs it, while it runs: the supervising surgeon may speak
+/// in the middle of a motion, not only between steps.
+pub trait StepControl {
+    /// How long the primitive may wait on a motion (or sleep) before it asks
+    /// [`StepControl::check`] again, on the run's clock; `None`: as long as the motion takes.
+    fn slice(&mut self) -> Option<Duration>;
+
+    /// Whether to go on. When a command stops the motion, the control calls `hold` (stop
+    /// every motion, hold both arms) before anything else, then decides: go on
+    /// ([`Control::Resumed`] after a pause: the stopped motion must be commanded again), or
+    /// [`Control::Stop`].
+    fn check(&mut self, hold: &mut dyn FnMut() -> Result<(), PrimitiveError>) -> Control;
+
+    /// The step passed its commit point: what it does to the needle, tissue or thread is
+    /// under way and cannot be undone by running it again (the needle let go in the tissue,
+    /// a pull on the thread begun, the needle let go by the other jaw). A take-over from here
+    /// hands back to the step after it.
+    fn commit(&mut self);
+}
+
+/// What a [`StepControl`] tells a primitive.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Control {
+    /// Go on.
+    Go,
+    /// The run was paused and is resumed: command the stopped motion again, and go on.
+    Resumed,
+    /// End the attempt at once and command nothing more: the arms hold.
+    Stop,
+}
+
+/// A control that never interrupts (tests, tools that run a primitive alone).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Uninterrupted;
+
+impl StepControl for Uninterrupted {
+    fn slice(&mut self) -> Option<Duration> {
+        None
+    }
+    fn check(&mut self, _hold: &mut dyn FnMut() -> Result<(), PrimitiveError>) -> Control {
+        Control::Go
+    }
+    fn commit(&mut self) {}
 }
 
 /// Errors of this crate.

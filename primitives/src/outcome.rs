@@ -106,6 +106,16 @@ pub enum StepOutcome {
     },
     /// The step did not reach its goal.
     Failed(Failure),
+    /// The supervisor ended the attempt mid-step (take-over, abort, e-stop): the arms held and
+    /// it commanded nothing more. Neither a success nor a failure: no retry and no
+    /// intervention follows from it.
+    Interrupted {
+        /// Whether the step had passed its commit point (what it does to the needle, tissue
+        /// or thread was under way).
+        committed: bool,
+        /// What it measured before it was stopped.
+        measured: Measurements,
+    },
 }
 
 impl StepOutcome {
@@ -129,6 +139,7 @@ impl StepOutcome {
         match self {
             StepOutcome::Succeeded { measured } => measured,
             StepOutcome::Failed(f) => &f.measured,
+            StepOutcome::Interrupted { measured, .. } => measured,
         }
     }
 }

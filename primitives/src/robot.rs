@@ -9,9 +9,9 @@
 //! +z, tip at +x·r, swage at −x·r, the arc through +y·r.
 
 use crate::{
-    CinchParams, CorrectParams, ExtractParams, Failure, FailureKind, HandoverParams, InsertParams,
-    Measurements, NeedleAt, NeedleSeen, Observation, ObserveRequest, PrimitiveError, Primitives,
-    StepKind, StepOutcome, StepRequest, SweepParams,
+    CinchParams, Control, CorrectParams, ExtractParams, Failure, FailureKind, HandoverParams,
+    InsertParams, Measurements, NeedleAt, NeedleSeen, Observation, ObserveRequest, PrimitiveError,
+    Primitives, StepControl, StepKind, StepOutcome, StepRequest, SweepParams,
 };
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
@@ -20,7 +20,10 @@ use stitch_perception::{
     JawHint, NeedleEnd, NeedleEstimate, NeedleEstimator, NeedleHint, PerceptionError, TissueHint,
 };
 use stitch_robot::nalgebra::{Rotation3, Translation3, Unit, UnitQuaternion};
-use stitch_robot::{Arm, Jaw, MoveHandle, Needle, Point, Pose, RobotError, Vector, WoundPoint};
+use stitch_robot::{
+    Arm, JAW_CLOSED_RAD, JAW_OPEN_RAD, Jaw, MoveHandle, Needle, Point, Pose, RobotError, Vector,
+    WoundPoint,
+};
 
 /// Rotations are streamed as move_cp waypoints this far apart, so the tool follows the arc
 /// closely (chord error r·(1 − cos 2.5°) ≈ 0.01 mm for the 12 mm needle), rad.
@@ -135,13 +138,50 @@ pub struct RobotPrimitives {
     unseen: Vec<String>,
 }
 
-/// A step that cannot go on, and why (boxed: a failure carries its measurements).
-type Step<T> = Result<T, Box<Failure>>;
+/// Why a step stops before its end: it failed (boxed: a failure carries its measurements), or
+/// the supervisor ended it.
+#[derive(Debug)]
+enum Halt {
+    Failed(Box<Failure>),
+    Interrupted,
+}
 
-fn fault(e: RobotError) -> Box<Failure> {
+impl Halt {
+    fn with(kind: FailureKind, measured: Measurements) -> Self {
+        Halt::Failed(Box::new(Failure { kind, measured }))
+    }
+}
+
+/// A step that cannot go on, and why.
+type Step<T> = Result<T, Halt>;
+
+fn fault(e: RobotError) -> Halt {
     failed(FailureKind::ArmFault {
         message: e.to_string(),
     })
+}
+
+/// Stop every motion and hold both arms; every refusal is said.
+fn hold_both(right: &dyn Arm, left: &dyn Arm) -> Result<(), PrimitiveError> {
+    // Both are told to hold whatever the other answered.
+    let failed: Vec<String> = [right.hold(), left.hold()]
+        .into_iter()
+        .filter_map(|r| r.err().map(|e| e.to_string()))
+        .collect();
+    if failed.is_empty() {
+        Ok(())
+    } else {
+        Err(PrimitiveError::Robot {
+            message: failed.join("; "),
+        })
+    }
+}
+
+/// One motion a primitive commands, so that it can be commanded again after a pause.
+#[derive(Clone, Copy, Debug)]
+enum Motion {
+    Arm(Hand, Pose),
+    Jaw(Hand, f64),
 }
 
 /// Which arm, for perception hints.
@@ -155,11 +195,8 @@ enum Hand {
 /// insertion, and where the handover puts it back).
 const RIGHT_AT_SWAGE: Option<(Hand, NeedleEnd)> = Some((Hand::Right, NeedleEnd::Swage));
 
-fn failed(kind: FailureKind) -> Box<Failure> {
-    Box::new(Failure {
-        kind,
-        measured: Measurements::default(),
-    })
+fn failed(kind: FailureKind) -> Halt {
+    Halt::with(kind, Measurements::default())
 }
 
 /// The hint for a needle held by a jaw at `jaw`, nearer `end`.
@@ -170,12 +207,6 @@ fn held_at(jaw: Point, end: NeedleEnd) -> NeedleHint {
 /// A pose at `p` with rotation `r`.
 fn pose(p: Point, r: UnitQuaternion<f64>) -> Pose {
     Pose::from_parts(Translation3::from(p.coords), r)
-}
-
-/// Wait for a motion to finish, at most [`MOTION_TIMEOUT`]; a robot error or a timeout is an
-/// arm fault.
-fn finish(handle: Result<MoveHandle, RobotError>) -> Step<()> {
-    handle.and_then(|h| h.wait(MOTION_TIMEOUT)).map_err(fault)
 }
 
 /// `t` moved by `v` (robot frame).
@@ -298,14 +329,87 @@ impl RobotPrimitives {
         }
     }
 
+    /// Ask the control whether to go on; when it says so, both arms hold first.
+    fn heed(&self, c: &mut dyn StepControl) -> Control {
+        let (right, left) = (&self.rig.right, &self.rig.left);
+        c.check(&mut || hold_both(&**right, &**left))
+    }
+
+    /// Between two things a step does that are not motions (estimator cycles): go on, or stop
+    /// if the supervisor ended the step. A pause here holds, waits, and goes on.
+    fn go_on(&self, c: &mut dyn StepControl) -> Step<()> {
+        match self.heed(c) {
+            Control::Go | Control::Resumed => Ok(()),
+            Control::Stop => Err(Halt::Interrupted),
+        }
+    }
+
+    fn command(&self, m: Motion) -> Result<MoveHandle, RobotError> {
+        match m {
+            Motion::Arm(Hand::Right, p) => self.rig.right.move_cp(&p),
+            Motion::Arm(Hand::Left, p) => self.rig.left.move_cp(&p),
+            Motion::Jaw(Hand::Right, a) => self.rig.right_jaw.move_jp(a),
+            Motion::Jaw(Hand::Left, a) => self.rig.left_jaw.move_jp(a),
+        }
+    }
+
+    /// Command a motion and wait for it to end, at most [`MOTION_TIMEOUT`], asking the control
+    /// every slice whether to go on: a pause holds the arms, waits, and commands the motion
+    /// again from where it stopped; a take-over, abort or e-stop holds them and ends the step.
+    /// A robot error or a timeout is an arm fault.
+    fn motion(&self, c: &mut dyn StepControl, m: Motion) -> Step<()> {
+        let mut handle = self.command(m).map_err(fault)?;
+        let mut waited = std::time::Duration::ZERO;
+        loop {
+            if handle.is_busy() {
+                let left = MOTION_TIMEOUT.saturating_sub(waited);
+                let slice = c.slice().filter(|s| *s < left);
+                match handle.wait(slice.unwrap_or(left)) {
+                    Ok(()) => {}
+                    // A slice ended with the motion under way: ask, then wait on.
+                    Err(RobotError::Timeout { .. }) if slice.is_some() => {
+                        waited += slice.unwrap_or_default();
+                    }
+                    Err(e) => return Err(fault(e)),
+                }
+            }
+            match self.heed(c) {
+                Control::Go if !handle.is_busy() => return Ok(()),
+                Control::Go => {}
+                Control::Resumed => {
+                    handle = self.command(m).map_err(fault)?;
+                    waited = std::time::Duration::ZERO;
+                }
+                Control::Stop => return Err(Halt::Interrupted),
+            }
+        }
+    }
+
+    /// Move `hand`'s arm through `poses` in order, each waited on.
+    fn go(&self, c: &mut dyn StepControl, hand: Hand, poses: &[Pose]) -> Step<()> {
+        for p in poses {
+            self.motion(c, Motion::Arm(hand, *p))?;
+        }
+        Ok(())
+    }
+
+    /// Move `hand`'s jaw to `angle_rad`, waited on.
+    fn jaw(&self, c: &mut dyn StepControl, hand: Hand, angle_rad: f64) -> Step<()> {
+        self.motion(c, Motion::Jaw(hand, angle_rad))
+    }
+
     /// A needle estimate, waiting up to [`ESTIMATE_TRIES`] estimator cycles for one; `held`
     /// says which arm holds the needle nearer which end, if one does.
-    fn estimate(&mut self, held: Option<(Hand, NeedleEnd)>) -> Step<NeedleEstimate> {
+    fn estimate(
+        &mut self,
+        c: &mut dyn StepControl,
+        held: Option<(Hand, NeedleEnd)>,
+    ) -> Step<NeedleEstimate> {
         let hint = match held {
             Some((hand, end)) => Some(self.held_hint(hand, end)?),
             None => None,
         };
-        self.estimate_with(hint)
+        self.estimate_with(c, hint)
     }
 
     /// Where the jaw of `hand` is, holding the needle nearer `end`. An arm that cannot say
@@ -323,8 +427,13 @@ impl RobotPrimitives {
     /// One estimator cycle: an estimate, or none this cycle (nothing seen, too uncertain:
     /// the reason is kept for the step's measurements); a camera that fails (no frames,
     /// unusable images) is a fault of the robot, not a needle out of sight, and stops the
-    /// step.
-    fn sample(&mut self, hint: Option<&NeedleHint>) -> Step<Option<NeedleEstimate>> {
+    /// step. The supervisor is heard before each cycle.
+    fn sample(
+        &mut self,
+        c: &mut dyn StepControl,
+        hint: Option<&NeedleHint>,
+    ) -> Step<Option<NeedleEstimate>> {
+        self.go_on(c)?;
         match self.rig.estimator.estimate_needle_with(hint) {
             Ok(e) => {
                 self.last_estimate = Some(e);
@@ -345,9 +454,13 @@ impl RobotPrimitives {
     }
 
     /// A needle estimate with this hint, waiting up to [`ESTIMATE_TRIES`] cycles.
-    fn estimate_with(&mut self, hint: Option<NeedleHint>) -> Step<NeedleEstimate> {
+    fn estimate_with(
+        &mut self,
+        c: &mut dyn StepControl,
+        hint: Option<NeedleHint>,
+    ) -> Step<NeedleEstimate> {
         for _ in 0..ESTIMATE_TRIES {
-            if let Some(e) = self.sample(hint.as_ref())? {
+            if let Some(e) = self.sample(c, hint.as_ref())? {
                 return Ok(e);
             }
         }
@@ -361,14 +474,13 @@ impl RobotPrimitives {
         self.rig.observer.as_mut().and_then(|o| o.problem())
     }
 
-    fn moves(arm: &Arc<dyn Arm>, poses: &[Pose]) -> Step<()> {
-        for p in poses {
-            finish(arm.move_cp(p))?;
-        }
-        Ok(())
-    }
-
-    fn insert(&mut self, point: &WoundPoint, p: &InsertParams) -> Step<Measurements> {
+    /// Insertion. Commit point: the right jaw opening to let go of the needle in the tissue.
+    fn insert(
+        &mut self,
+        c: &mut dyn StepControl,
+        point: &WoundPoint,
+        p: &InsertParams,
+    ) -> Step<Measurements> {
         self.last_point = Some(point.clone());
         let tool = self.rig.right.measured_cp().map_err(fault)?;
         let corrected = self.corrected_grasp.take();
@@ -377,10 +489,10 @@ impl RobotPrimitives {
             _ => {
                 // Average the fresh estimates of the needle in the jaw (positions by mean,
                 // rotations by the normalised quaternion sum); one must come.
-                let mut grasps = vec![tool.inverse() * self.estimate(RIGHT_AT_SWAGE)?.pose];
+                let mut grasps = vec![tool.inverse() * self.estimate(c, RIGHT_AT_SWAGE)?.pose];
                 let hint = self.held_hint(Hand::Right, NeedleEnd::Swage)?;
                 for _ in 1..p.samples.max(1) {
-                    if let Some(e) = self.sample(Some(&hint))? {
+                    if let Some(e) = self.sample(c, Some(&hint))? {
                         grasps.push(tool.inverse() * e.pose);
                     }
                 }
@@ -388,14 +500,24 @@ impl RobotPrimitives {
             }
         };
         let waypoints = insertion_waypoints(&self.rig.needle, &grasp, point, p);
-        Self::moves(&self.rig.right, &waypoints[..1])?;
-        if let Some(o) = self.rig.observer.as_mut() {
-            o.begin_pass();
+        let pushed = self.go(c, Hand::Right, &waypoints[..1]).and_then(|()| {
+            if let Some(o) = self.rig.observer.as_mut() {
+                o.begin_pass();
+            }
+            self.go(c, Hand::Right, &waypoints[1..])
+        });
+        if let Err(e) = pushed {
+            // Stopped by the supervisor before the needle was let go: a re-run after the
+            // hand-back inserts with the same corrected grasp.
+            if matches!(e, Halt::Interrupted) {
+                self.corrected_grasp = corrected;
+            }
+            return Err(e);
         }
-        Self::moves(&self.rig.right, &waypoints[1..])?;
-        finish(self.rig.right_jaw.open())?;
+        c.commit();
+        self.jaw(c, Hand::Right, JAW_OPEN_RAD)?;
         let last = waypoints.last().copied().unwrap_or(tool);
-        Self::moves(&self.rig.right, &[shifted(&last, Vector::z() * RETREAT_M)])?;
+        self.go(c, Hand::Right, &[shifted(&last, Vector::z() * RETREAT_M)])?;
         let mut measured = Measurements::default();
         if let Some(o) = self.rig.observer.as_mut() {
             let pass = o.end_pass(point);
@@ -403,40 +525,46 @@ impl RobotPrimitives {
             measured.exit_error_m = pass.exit_error_m;
             measured.thread_left_m = Some(o.thread_left_m()).filter(|m| m.is_finite());
             if let Some(kind) = o.problem() {
-                return Err(Box::new(Failure { kind, measured }));
+                return Err(Halt::with(kind, measured));
             }
             if !pass.passed {
-                return Err(Box::new(Failure {
-                    kind: FailureKind::Missed,
-                    measured,
-                }));
+                return Err(Halt::with(FailureKind::Missed, measured));
             }
         }
         Ok(measured)
     }
 
-    fn sweep(&mut self, point: &WoundPoint, p: &SweepParams) -> Step<Measurements> {
+    /// Thread sweep. No commit point: a sweep run again sweeps again.
+    fn sweep(
+        &mut self,
+        c: &mut dyn StepControl,
+        point: &WoundPoint,
+        p: &SweepParams,
+    ) -> Step<Measurements> {
         let mid = Point::from((point.entry.coords + point.exit.coords) / 2.0);
         let start = pose(
             mid + Vector::new(0.0, 0.005, 0.004),
             pointing(&-Vector::z()),
         );
-        finish(self.rig.right_jaw.move_jp(p.jaw_open_rad))?;
-        Self::moves(
-            &self.rig.right,
+        self.jaw(c, Hand::Right, p.jaw_open_rad)?;
+        self.go(
+            c,
+            Hand::Right,
             &[start, shifted(&start, Vector::y() * p.distance_m)],
         )?;
         // Lift clear of the thread pushed ahead of the jaw before closing it.
         let end = shifted(&start, Vector::y() * p.distance_m + Vector::z() * RETREAT_M);
-        Self::moves(&self.rig.right, &[end])?;
-        finish(self.rig.right_jaw.close())?;
+        self.go(c, Hand::Right, &[end])?;
+        self.jaw(c, Hand::Right, JAW_CLOSED_RAD)?;
         match self.problem() {
             Some(kind) => Err(failed(kind)),
             None => Ok(Measurements::default()),
         }
     }
 
-    fn extract(&mut self, p: &ExtractParams) -> Step<Measurements> {
+    /// Extraction. Commit point: the left jaw, closed on the needle, beginning to turn it out
+    /// along its arc (from there, opening that jaw again may drop it).
+    fn extract(&mut self, c: &mut dyn StepControl, p: &ExtractParams) -> Step<Measurements> {
         // Clear the camera's view of the wound: the right driver, just released from the
         // needle, would hide it.
         let right = self.rig.right.measured_cp().map_err(fault)?;
@@ -445,7 +573,7 @@ impl RobotPrimitives {
                 Translation3::from(self.rig.layout.right_ready.coords),
                 right.rotation,
             );
-            Self::moves(&self.rig.right, &[ready])?;
+            self.go(c, Hand::Right, &[ready])?;
         }
         // The needle is in the tissue through the last wound point's holes, held by neither
         // jaw.
@@ -455,7 +583,7 @@ impl RobotPrimitives {
                 exit: wp.exit,
             })
         });
-        let before = self.estimate_with(holes)?;
+        let before = self.estimate_with(c, holes)?;
         let (center, normal, tip, swage) = before.features(&self.rig.needle);
         let left = self.rig.left.measured_cp().map_err(fault)?;
         let from = Point::from(left.translation.vector);
@@ -470,9 +598,9 @@ impl RobotPrimitives {
             NeedleEnd::Swage
         };
         let [off, grasp] = regrasp_waypoints(&regrasp, &from, p.offset_m, p.approach_m);
-        finish(self.rig.left_jaw.open())?;
-        Self::moves(&self.rig.left, &[off, grasp])?;
-        finish(self.rig.left_jaw.close())?;
+        self.jaw(c, Hand::Left, JAW_OPEN_RAD)?;
+        self.go(c, Hand::Left, &[off, grasp])?;
+        self.jaw(c, Hand::Left, JAW_CLOSED_RAD)?;
         let steps = (p.rotation_rad.abs() / ROTATION_STEP_RAD).ceil().max(1.0) as usize;
         let turn: Vec<Pose> = (1..=steps)
             .map(|k| {
@@ -484,20 +612,24 @@ impl RobotPrimitives {
                 )
             })
             .collect();
-        Self::moves(&self.rig.left, &turn)?;
+        c.commit();
+        self.go(c, Hand::Left, &turn)?;
         let last = turn.last().copied().unwrap_or(grasp);
         let away = horizontal(from - regrasp).unwrap_or_else(Vector::x);
         let pull = (away + Vector::z()).normalize() * p.pull_m;
-        Self::moves(&self.rig.left, &[shifted(&last, pull)])?;
+        self.go(c, Hand::Left, &[shifted(&last, pull)])?;
         // If no estimate comes, the left jaw keeps whatever it holds: the needle may be out.
-        let after = self.estimate(Some((
-            Hand::Left,
-            if is_tip {
-                NeedleEnd::Tip
-            } else {
-                NeedleEnd::Swage
-            },
-        )))?;
+        let after = self.estimate(
+            c,
+            Some((
+                Hand::Left,
+                if is_tip {
+                    NeedleEnd::Tip
+                } else {
+                    NeedleEnd::Swage
+                },
+            )),
+        )?;
         let (_, _, tip2, swage2) = after.features(&self.rig.needle);
         let travel = if is_tip {
             (tip2 - tip).norm()
@@ -516,30 +648,38 @@ impl RobotPrimitives {
             .is_some_and(|o| o.needle_in_tissue());
         let problem = self.problem();
         if let Some(kind) = problem {
-            return Err(Box::new(Failure { kind, measured }));
+            return Err(Halt::with(kind, measured));
         }
         if still_in || travel < p.min_travel_m {
             // Let go and back off, ready for a retry.
-            finish(self.rig.left_jaw.open())?;
-            Self::moves(&self.rig.left, &[off])?;
+            self.jaw(c, Hand::Left, JAW_OPEN_RAD)?;
+            self.go(c, Hand::Left, &[off])?;
             let kind = if travel < p.min_travel_m {
                 FailureKind::NoProgress
             } else {
                 FailureKind::Missed
             };
-            return Err(Box::new(Failure { kind, measured }));
+            return Err(Halt::with(kind, measured));
         }
         Ok(measured)
     }
 
-    fn cinch(&mut self, suture: usize, p: &CinchParams) -> Step<Measurements> {
+    /// Cinch. Commit point: the pull on the thread beginning (pulled twice, a suture is
+    /// over-tightened).
+    fn cinch(
+        &mut self,
+        c: &mut dyn StepControl,
+        suture: usize,
+        p: &CinchParams,
+    ) -> Step<Measurements> {
         let beta = p.beta_m(suture).max(0.0);
         let tool = self.rig.left.measured_cp().map_err(fault)?;
         let here = Point::from(tool.translation.vector);
         let away =
             horizontal(here - self.rig.layout.handover_point).unwrap_or_else(|| -Vector::x());
         let pull = away * beta.min(CINCH_MAX_PULL_M);
-        Self::moves(&self.rig.left, &[shifted(&tool, pull)])?;
+        c.commit();
+        self.go(c, Hand::Left, &[shifted(&tool, pull)])?;
         let mut measured = Measurements {
             thread_used_m: Some(beta),
             ..Measurements::default()
@@ -549,15 +689,22 @@ impl RobotPrimitives {
             measured.thread_left_m = Some(o.thread_left_m()).filter(|m| m.is_finite());
         }
         let present = pose(self.rig.layout.handover_point, tool.rotation);
-        Self::moves(&self.rig.left, &[present])?;
+        self.go(c, Hand::Left, &[present])?;
         match self.problem() {
-            Some(kind) => Err(Box::new(Failure { kind, measured })),
+            Some(kind) => Err(Halt::with(kind, measured)),
             None => Ok(measured),
         }
     }
 
-    fn handover(&mut self, attempt: u32, p: &HandoverParams) -> Step<Measurements> {
-        let before = self.estimate(Some((Hand::Left, NeedleEnd::Tip)))?;
+    /// Handover. Commit point: the left jaw opening to let go of the needle the right jaw
+    /// now holds.
+    fn handover(
+        &mut self,
+        c: &mut dyn StepControl,
+        attempt: u32,
+        p: &HandoverParams,
+    ) -> Step<Measurements> {
+        let before = self.estimate(c, Some((Hand::Left, NeedleEnd::Tip)))?;
         let (_, n0, tip, swage) = before.features(&self.rig.needle);
         let left = Point::from(
             self.rig
@@ -602,13 +749,13 @@ impl RobotPrimitives {
         };
         let target = regrasp + jitter;
         let [off, at] = regrasp_waypoints(&target, &(target + h), p.offset_m, p.offset_m);
-        finish(self.rig.right_jaw.open())?;
-        Self::moves(&self.rig.right, &[off, at])?;
-        finish(self.rig.right_jaw.close())?;
+        self.jaw(c, Hand::Right, JAW_OPEN_RAD)?;
+        self.go(c, Hand::Right, &[off, at])?;
+        self.jaw(c, Hand::Right, JAW_CLOSED_RAD)?;
         // Tug: turn the right driver a little about a horizontal axis across its approach.
         let tug = rotated_about(&at, &target, &Vector::z().cross(&h), p.tug_rad);
-        Self::moves(&self.rig.right, &[tug])?;
-        let after = self.estimate(RIGHT_AT_SWAGE)?;
+        self.go(c, Hand::Right, &[tug])?;
+        let after = self.estimate(c, RIGHT_AT_SWAGE)?;
         let n1 = after.features(&self.rig.needle).1;
         let change = n0.angle(&n1);
         let measured = Measurements {
@@ -617,33 +764,33 @@ impl RobotPrimitives {
         };
         if change <= p.normal_tolerance_rad {
             // The grasp did not take: let go, pull back.
-            finish(self.rig.right_jaw.open())?;
-            Self::moves(&self.rig.right, &[off])?;
-            return Err(Box::new(Failure {
-                kind: FailureKind::NoProgress,
-                measured,
-            }));
+            self.jaw(c, Hand::Right, JAW_OPEN_RAD)?;
+            self.go(c, Hand::Right, &[off])?;
+            return Err(Halt::with(FailureKind::NoProgress, measured));
         }
-        finish(self.rig.left_jaw.open())?;
+        c.commit();
+        self.jaw(c, Hand::Left, JAW_OPEN_RAD)?;
         let ready = pose(self.rig.layout.left_ready, UnitQuaternion::identity());
-        Self::moves(&self.rig.left, &[ready])?;
+        self.go(c, Hand::Left, &[ready])?;
         match self.problem() {
-            Some(kind) => Err(Box::new(Failure { kind, measured })),
+            Some(kind) => Err(Halt::with(kind, measured)),
             None => Ok(measured),
         }
     }
 
-    fn correct(&mut self, p: &CorrectParams) -> Step<Measurements> {
+    /// Needle pose correction. No commit point: run again from anywhere, it moves the needle
+    /// in free space to the corner and measures it anew.
+    fn correct(&mut self, c: &mut dyn StepControl, p: &CorrectParams) -> Step<Measurements> {
         let tool = self.rig.right.measured_cp().map_err(fault)?;
-        let first = self.estimate(RIGHT_AT_SWAGE)?;
+        let first = self.estimate(c, RIGHT_AT_SWAGE)?;
         let center = first.pose * Point::origin();
         let to_corner = shifted(&tool, self.rig.layout.correction_point - center);
-        Self::moves(&self.rig.right, &[to_corner])?;
+        self.go(c, Hand::Right, &[to_corner])?;
         // Average the samples: positions by mean, rotations by the normalised quaternion sum.
         let hint = self.held_hint(Hand::Right, NeedleEnd::Swage)?;
         let mut grasps = Vec::new();
         for _ in 0..p.samples.max(1) {
-            if let Some(e) = self.sample(Some(&hint))? {
+            if let Some(e) = self.sample(c, Some(&hint))? {
                 grasps.push(to_corner.inverse() * e.pose);
             }
         }
@@ -652,15 +799,15 @@ impl RobotPrimitives {
         }
         let grasp = mean_pose(&grasps);
         let needle = to_corner * grasp;
-        let (c, n) = (needle * Point::origin(), needle * Vector::z());
+        let (cn, n) = (needle * Point::origin(), needle * Vector::z());
         let align = UnitQuaternion::rotation_between(&n, &Vector::y())
             .unwrap_or_else(UnitQuaternion::identity);
         let (axis, angle) = align
             .axis_angle()
             .map_or((Vector::y(), 0.0), |(a, t)| (a.into_inner(), t));
-        let aligned = rotated_about(&to_corner, &c, &axis, angle);
-        let turned = rotated_about(&aligned, &c, &Vector::y(), p.final_rotation_rad);
-        Self::moves(&self.rig.right, &[aligned, turned])?;
+        let aligned = rotated_about(&to_corner, &cn, &axis, angle);
+        let turned = rotated_about(&aligned, &cn, &Vector::y(), p.final_rotation_rad);
+        self.go(c, Hand::Right, &[aligned, turned])?;
         self.corrected_grasp = Some(grasp);
         match self.problem() {
             Some(kind) => Err(failed(kind)),
@@ -668,12 +815,13 @@ impl RobotPrimitives {
         }
     }
 
-    fn perceive(&mut self, kind: &StepKind) -> Step<Measurements> {
+    /// A perception query. No commit point: nothing moves.
+    fn perceive(&mut self, c: &mut dyn StepControl, kind: &StepKind) -> Step<Measurements> {
         // No thread tracer yet: for `track_thread`, what the scene shows about the thread is
         // all there is.
         if let StepKind::EstimateNeedle(p) = kind {
             for _ in 0..p.samples.max(1) {
-                self.estimate(None)?;
+                self.estimate(c, None)?;
             }
         }
         match self.problem() {
@@ -708,16 +856,24 @@ pub fn mean_pose(poses: &[Pose]) -> Pose {
 }
 
 impl Primitives for RobotPrimitives {
-    fn run(&mut self, req: &StepRequest<'_>) -> StepOutcome {
+    fn run(&mut self, req: &StepRequest<'_>, control: &mut dyn StepControl) -> StepOutcome {
         self.unseen.clear();
-        let result = match req.kind {
-            StepKind::Insert(p) => self.insert(req.point, p),
-            StepKind::Sweep(p) => self.sweep(req.point, p),
-            StepKind::Extract(p) => self.extract(p),
-            StepKind::Cinch(p) => self.cinch(req.throw + 1, p),
-            StepKind::Handover(p) => self.handover(req.attempt, p),
-            StepKind::Correct(p) => self.correct(p),
-            k @ (StepKind::EstimateNeedle(_) | StepKind::TrackThread(_)) => self.perceive(k),
+        let mut committed = false;
+        let result = {
+            let mut c = Committing {
+                inner: control,
+                committed: &mut committed,
+            };
+            let c: &mut dyn StepControl = &mut c;
+            match req.kind {
+                StepKind::Insert(p) => self.insert(c, req.point, p),
+                StepKind::Sweep(p) => self.sweep(c, req.point, p),
+                StepKind::Extract(p) => self.extract(c, p),
+                StepKind::Cinch(p) => self.cinch(c, req.throw + 1, p),
+                StepKind::Handover(p) => self.handover(c, req.attempt, p),
+                StepKind::Correct(p) => self.correct(c, p),
+                k @ (StepKind::EstimateNeedle(_) | StepKind::TrackThread(_)) => self.perceive(c, k),
+            }
         };
         let unseen = std::mem::take(&mut self.unseen);
         match result {
@@ -725,10 +881,17 @@ impl Primitives for RobotPrimitives {
                 measured.perception_failures = unseen;
                 StepOutcome::Succeeded { measured }
             }
-            Err(mut failure) => {
+            Err(Halt::Failed(mut failure)) => {
                 failure.measured.perception_failures = unseen;
                 StepOutcome::Failed(*failure)
             }
+            Err(Halt::Interrupted) => StepOutcome::Interrupted {
+                committed,
+                measured: Measurements {
+                    perception_failures: unseen,
+                    ..Measurements::default()
+                },
+            },
         }
     }
 
@@ -796,18 +959,26 @@ impl Primitives for RobotPrimitives {
     }
 
     fn hold_all(&mut self) -> Result<(), PrimitiveError> {
-        // Both are told to hold whatever the other answered; every refusal is said.
-        let failed: Vec<String> = [self.rig.right.hold(), self.rig.left.hold()]
-            .into_iter()
-            .filter_map(|r| r.err().map(|e| e.to_string()))
-            .collect();
-        if failed.is_empty() {
-            Ok(())
-        } else {
-            Err(PrimitiveError::Robot {
-                message: failed.join("; "),
-            })
-        }
+        hold_both(&*self.rig.right, &*self.rig.left)
+    }
+}
+
+/// Passes a control through, noting whether the step committed (for its outcome).
+struct Committing<'a> {
+    inner: &'a mut dyn StepControl,
+    committed: &'a mut bool,
+}
+
+impl StepControl for Committing<'_> {
+    fn slice(&mut self) -> Option<std::time::Duration> {
+        self.inner.slice()
+    }
+    fn check(&mut self, hold: &mut dyn FnMut() -> Result<(), PrimitiveError>) -> Control {
+        self.inner.check(hold)
+    }
+    fn commit(&mut self) {
+        *self.committed = true;
+        self.inner.commit();
     }
 }
 

@@ -8,8 +8,8 @@
 //! reports 5 mm of endpoint travel, below the 2 cm threshold).
 
 use crate::{
-    FailureKind, Measurements, Observation, ObserveRequest, PrimitiveError, Primitives, StepKind,
-    StepOutcome, StepRequest,
+    Control, FailureKind, Measurements, Observation, ObserveRequest, PrimitiveError, Primitives,
+    StepControl, StepKind, StepOutcome, StepRequest,
 };
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -322,11 +322,12 @@ impl ScriptedPrimitives {
 }
 
 impl Primitives for ScriptedPrimitives {
-    fn run(&mut self, req: &StepRequest<'_>) -> StepOutcome {
+    /// The attempt takes its drawn duration on the clock, in slices the control asks for; a
+    /// pause stops the clock's count until resumed. The step commits halfway through, where
+    /// the step has a commit point (insert, extract, cinch, handover).
+    fn run(&mut self, req: &StepRequest<'_>, control: &mut dyn StepControl) -> StepOutcome {
         let name = req.kind.name();
         let (token, duration_s) = self.next(name);
-        self.clock
-            .sleep(Duration::from_secs_f64(duration_s.max(0.0)));
         self.calls.push(Call {
             throw: req.throw,
             step: req.step,
@@ -334,6 +335,37 @@ impl Primitives for ScriptedPrimitives {
             attempt: req.attempt,
             token,
         });
+        let total = Duration::from_secs_f64(duration_s.max(0.0));
+        let commits = matches!(
+            req.kind,
+            StepKind::Insert(_) | StepKind::Extract(_) | StepKind::Cinch(_) | StepKind::Handover(_)
+        );
+        let (mut done, mut committed) = (Duration::ZERO, false);
+        let holds = &mut self.holds;
+        let calls = self.calls.len();
+        loop {
+            if commits && !committed && done >= total / 2 {
+                committed = true;
+                control.commit();
+            }
+            if done >= total {
+                break;
+            }
+            let left = total - done;
+            let slice = control.slice().map_or(left, |s| s.min(left));
+            self.clock.sleep(slice);
+            done += slice;
+            let mut hold = || {
+                holds.push(calls);
+                Ok(())
+            };
+            if control.check(&mut hold) == Control::Stop {
+                return StepOutcome::Interrupted {
+                    committed,
+                    measured: Measurements::default(),
+                };
+            }
+        }
         token.outcome_for(req.kind, req.throw + 1)
     }
 
@@ -386,13 +418,16 @@ mod tests {
         let pt = point();
         (0..n)
             .map(|i| {
-                p.run(&StepRequest {
-                    throw: 0,
-                    step: 0,
-                    point: &pt,
-                    kind: &kind,
-                    attempt: i as u32,
-                });
+                p.run(
+                    &StepRequest {
+                        throw: 0,
+                        step: 0,
+                        point: &pt,
+                        kind: &kind,
+                        attempt: i as u32,
+                    },
+                    &mut crate::Uninterrupted,
+                );
                 p.calls[i].token
             })
             .collect()

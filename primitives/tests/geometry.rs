@@ -84,13 +84,16 @@ fn run(p: &mut RobotPrimitives, kind: StepKind) -> StepOutcome {
         entry: Point::new(-0.005, 0.0, -0.12),
         exit: Point::new(0.005, 0.0, -0.12),
     };
-    p.run(&StepRequest {
-        throw: 0,
-        step: 0,
-        point: &point,
-        kind: &kind,
-        attempt: 0,
-    })
+    p.run(
+        &StepRequest {
+            throw: 0,
+            step: 0,
+            point: &point,
+            kind: &kind,
+            attempt: 0,
+        },
+        &mut stitch_primitives::Uninterrupted,
+    )
 }
 
 fn same(a: &Pose, b: &Pose) -> bool {

@@ -647,6 +647,7 @@ fn write_loop(
                         failure: match outcome {
                             StepOutcome::Succeeded { .. } => String::new(),
                             StepOutcome::Failed(f) => serde_tag(&f.kind, "kind"),
+                            StepOutcome::Interrupted { .. } => "interrupted".into(),
                         },
                         entry_error_m: v(m.entry_error_m),
                         exit_error_m: v(m.exit_error_m),

@@ -15,8 +15,8 @@ use std::time::Duration;
 use stitch_robot::nalgebra::Rotation3;
 use stitch_robot::nalgebra::{Translation3, UnitQuaternion};
 use stitch_robot::{
-    Arm, Jaw, MoveHandle, Needle, Point, Pose, RobotError, SimClock, SpeedLimits, Vector, Wound,
-    WoundSpec,
+    Arm, Clock, Jaw, MotionTracker, MoveHandle, Needle, Point, Pose, RobotError, SimClock,
+    SpeedLimits, Vector, Wound, WoundSpec,
 };
 
 /// Where a step needs the needle, for a recovery.
@@ -198,6 +198,160 @@ struct State {
     previous: [Pose; 2],
     /// Where along the arc the right jaw first held the needle, rad.
     initial_grasp_angle: f64,
+    /// Each PSM's Cartesian motion under way, if any.
+    motions: [Option<ArmMotion>; 2],
+    /// Each jaw's motion under way: its id and when it ends.
+    jaw_motions: [Option<(u64, Duration)>; 2],
+    /// The id the next motion gets.
+    next_motion: u64,
+}
+
+/// A Cartesian motion under way on the simulated clock: a straight line at the arm's speed,
+/// sampled every [`SAMPLE_SPACING_M`] for the carried needle's path. It progresses as the
+/// clock does ([`State::settle`]); its effects on the needle and thread are those of the
+/// path it has run, so a motion stopped halfway has done half of what it would have.
+#[derive(Clone, Debug)]
+struct ArmMotion {
+    id: u64,
+    start: Pose,
+    goal: Pose,
+    begin: Duration,
+    end: Duration,
+    steps: usize,
+    /// Samples of the path applied so far.
+    applied: usize,
+    /// The needle in this jaw's frame, if the jaw held it when the motion began.
+    carried: Option<Pose>,
+}
+
+impl ArmMotion {
+    /// The fraction of the path run at `now`, 0 to 1.
+    fn fraction(&self, now: Duration) -> f64 {
+        if now >= self.end {
+            1.0
+        } else {
+            let total = (self.end - self.begin).as_secs_f64();
+            (now.saturating_sub(self.begin).as_secs_f64() / total).clamp(0.0, 1.0)
+        }
+    }
+
+    /// The pose a fraction `t` of the way (interpolated even at 1, as the path's samples
+    /// always were; the setpoint at the end is the goal itself).
+    fn at(&self, t: f64) -> Pose {
+        Pose::from_parts(
+            Translation3::from(
+                self.start
+                    .translation
+                    .vector
+                    .lerp(&self.goal.translation.vector, t),
+            ),
+            self.start.rotation.slerp(&self.goal.rotation, t),
+        )
+    }
+}
+
+impl State {
+    /// Bring every motion under way up to `now`: the path run since the last settle is
+    /// applied, and a motion that reached its end completes.
+    fn settle(&mut self, now: Duration) {
+        for i in 0..2 {
+            let Some(m) = self.motions[i].take() else {
+                continue;
+            };
+            let t = m.fraction(now);
+            let mut m = self.advance_motion(i, m, t);
+            if t >= 1.0 {
+                self.complete(i, &m, m.goal);
+            } else {
+                self.psms[i].setpoint = m.at(t);
+                m.applied = m.applied.min(m.steps);
+                self.motions[i] = Some(m);
+            }
+        }
+        for j in &mut self.jaw_motions {
+            if j.is_some_and(|(_, end)| end <= now) {
+                *j = None;
+            }
+        }
+    }
+
+    /// Apply the samples of `m`'s path up to the fraction `t` (all of them at 1).
+    fn advance_motion(&mut self, i: usize, mut m: ArmMotion, t: f64) -> ArmMotion {
+        let upto = if t >= 1.0 {
+            m.steps
+        } else {
+            ((t * m.steps as f64).floor() as usize).min(m.steps)
+        };
+        if let Some(grasp) = m.carried {
+            for k in (m.applied + 1)..=upto {
+                let pose = m.at(k as f64 / m.steps as f64);
+                let actual = self.faults.actual_pose(i, &self.rcm[i], &pose);
+                self.needle.pose = actual * grasp;
+                let tip = self.needle.pose * self.needle_model.tip();
+                self.tip_path.push(tip);
+            }
+        }
+        m.applied = m.applied.max(upto);
+        m
+    }
+
+    /// Stop arm `i`'s motion, if one is under way, where it is now; and its jaw's, if `jaw`.
+    fn stop(&mut self, i: usize, now: Duration, jaw: bool) {
+        self.settle(now);
+        if let Some(m) = self.motions[i].take() {
+            let at = m.at(m.fraction(now));
+            if let Some(grasp) = m.carried {
+                let actual = self.faults.actual_pose(i, &self.rcm[i], &at);
+                self.needle.pose = actual * grasp;
+            }
+            self.complete(i, &m, at);
+        }
+        if jaw {
+            self.jaw_motions[i] = None;
+        }
+    }
+
+    /// A motion of arm `i` ends at `at` (its goal, or where it was stopped): the needle may
+    /// slip, the other jaw lets go of a needle carried away from it, the needle lodges in or
+    /// leaves the tissue, the thread follows, a sweep pushes it.
+    fn complete(&mut self, i: usize, m: &ArmMotion, at: Pose) {
+        let side = if i == 0 { Side::Right } else { Side::Left };
+        let start = m.start;
+        if let Some(grasp) = m.carried {
+            if self.faults.fires(FaultKind::NeedleSlip) {
+                let slipped = grasp * self.faults.slip();
+                let actual = self.faults.actual_pose(i, &self.rcm[i], &at);
+                self.needle.grips[i] = Some(slipped);
+                self.needle.pose = actual * slipped;
+            }
+            // The other jaw cannot hold a needle that moved away from it: it slips out.
+            let other = side.other().index();
+            self.needle.grips[other] = None;
+            let was = self.lodged;
+            self.lodged = tissue_holding(self);
+            if let (Some(p), None) = (was, self.lodged) {
+                // Out of the tissue: the thread now leaves the suture line at this exit.
+                let exit = self.phantom.wound.points[p].exit;
+                self.thread.on_extraction(exit);
+            }
+            let swage = self.needle.pose * self.needle_model.swage();
+            self.thread.lay(swage);
+        } else if side == Side::Right && self.psms[0].jaw_rad >= SWEEP_MIN_JAW_RAD {
+            let d = at.translation.vector - start.translation.vector;
+            let near = self.last_point.is_some_and(|p| {
+                let p = &self.phantom.wound.points[p];
+                let mid = (p.entry.coords + p.exit.coords) / 2.0;
+                (start.translation.vector - mid).xz().norm() < 0.015
+            });
+            if near && d.y > 0.01 && d.x.abs() < 0.005 && d.z.abs() < 0.005 {
+                let from = Point::from(start.translation.vector);
+                self.thread.on_sweep(&from, at.translation.vector.y);
+                let swage = self.needle.pose * self.needle_model.swage();
+                self.thread.lay(swage);
+            }
+        }
+        self.psms[i].setpoint = at;
+    }
 }
 
 /// Where things are at the start, and the models' parameters. Poses in the robot frame, m.
@@ -357,6 +511,9 @@ impl MockDvrk {
             rcm: scene.rcm.map(|p| Point::new(p[0], p[1], p[2])),
             previous: home,
             initial_grasp_angle: scene.grasp_angle_rad,
+            motions: [None, None],
+            jaw_motions: [None, None],
+            next_motion: 0,
         };
         Ok(Self {
             state: Arc::new(Mutex::new(state)),
@@ -403,8 +560,12 @@ impl MockDvrk {
         thread.on_cinch(beta_m, thread_rng);
     }
 
+    /// The world's state, every motion under way brought up to the clock's time.
     fn lock(&self) -> MutexGuard<'_, State> {
-        self.state.lock().unwrap_or_else(PoisonError::into_inner)
+        let now = self.clock.now();
+        let mut s = self.state.lock().unwrap_or_else(PoisonError::into_inner);
+        s.settle(now);
+        s
     }
 
     /// The simulated clock.
@@ -514,6 +675,9 @@ impl MockDvrk {
     /// back in the tissue as it was last left there. Thread that ran short stays short.
     pub fn recover(&self, needs: NeedlePlace) {
         let mut s = self.lock();
+        // The surgeon's hands replace whatever the robot was doing.
+        s.motions = [None, None];
+        s.jaw_motions = [None, None];
         s.thread.caught = false;
         s.thread.tangled = false;
         // The surgeon lays the slack back, away from the camera.
@@ -566,7 +730,10 @@ impl MockDvrk {
         s.needle.dropped = dropped;
     }
 
-    fn move_to(&self, side: Side, goal: &Pose) -> Result<(), RobotError> {
+    /// Begin a motion of `side`'s arm to `goal` (a motion under way there stops where it is,
+    /// as a new `move_cp` preempts a trajectory); its id.
+    fn move_to(&self, side: Side, goal: &Pose) -> Result<u64, RobotError> {
+        let now = self.clock.now();
         let mut s = self.lock();
         let name = side.arm_name();
         let finite = goal.translation.vector.iter().all(|v| v.is_finite())
@@ -588,75 +755,47 @@ impl MockDvrk {
                 message: "injected arm fault".into(),
             });
         }
-        let psm = &s.psms[side.index()];
+        let i = side.index();
+        s.stop(i, now, false);
+        let psm = &s.psms[i];
         let start = psm.setpoint;
         let distance = (goal.translation.vector - start.translation.vector).norm();
         let angle = start.rotation.angle_to(&goal.rotation);
         let secs = (distance / psm.speed.linear_m_per_s).max(angle / psm.speed.angular_rad_per_s);
         let steps = MIN_SAMPLES.max((distance / SAMPLE_SPACING_M).ceil() as usize);
-        let carried = s.needle.grips[side.index()];
-        for i in 1..=steps {
-            let t = i as f64 / steps as f64;
-            let pose = Pose::from_parts(
-                Translation3::from(start.translation.vector.lerp(&goal.translation.vector, t)),
-                start.rotation.slerp(&goal.rotation, t),
-            );
-            if let Some(grasp) = carried {
-                let actual = s
-                    .faults
-                    .actual_pose(side.index(), &s.rcm[side.index()], &pose);
-                s.needle.pose = actual * grasp;
-                let tip = s.needle.pose * s.needle_model.tip();
-                s.tip_path.push(tip);
-            }
-        }
-        if let Some(grasp) = carried {
-            if s.faults.fires(FaultKind::NeedleSlip) {
-                let slipped = grasp * s.faults.slip();
-                let actual = s
-                    .faults
-                    .actual_pose(side.index(), &s.rcm[side.index()], goal);
-                s.needle.grips[side.index()] = Some(slipped);
-                s.needle.pose = actual * slipped;
-            }
-        }
-        if carried.is_some() {
-            // The other jaw cannot hold a needle that moved away from it: it slips out.
-            let other = side.other().index();
-            s.needle.grips[other] = None;
-            let was = s.lodged;
-            s.lodged = tissue_holding(&s);
-            if let (Some(p), None) = (was, s.lodged) {
-                // Out of the tissue: the thread now leaves the suture line at this exit.
-                let exit = s.phantom.wound.points[p].exit;
-                s.thread.on_extraction(exit);
-            }
-            let swage = s.needle.pose * s.needle_model.swage();
-            s.thread.lay(swage);
-        } else if side == Side::Right && s.psms[0].jaw_rad >= SWEEP_MIN_JAW_RAD {
-            let d = goal.translation.vector - start.translation.vector;
-            let near = s.last_point.is_some_and(|i| {
-                let p = &s.phantom.wound.points[i];
-                let mid = (p.entry.coords + p.exit.coords) / 2.0;
-                (start.translation.vector - mid).xz().norm() < 0.015
-            });
-            if near && d.y > 0.01 && d.x.abs() < 0.005 && d.z.abs() < 0.005 {
-                let from = Point::from(start.translation.vector);
-                s.thread.on_sweep(&from, goal.translation.vector.y);
-                let swage = s.needle.pose * s.needle_model.swage();
-                s.thread.lay(swage);
-            }
-        }
-        s.previous[side.index()] = start;
-        let psm = &mut s.psms[side.index()];
-        psm.setpoint = *goal;
-        psm.commands += 1;
-        drop(s);
-        self.clock.advance(Duration::from_secs_f64(secs));
-        Ok(())
+        let id = s.next_motion;
+        s.next_motion += 1;
+        let motion = ArmMotion {
+            id,
+            start,
+            goal: *goal,
+            begin: now,
+            end: now + Duration::from_secs_f64(secs),
+            steps,
+            applied: 0,
+            carried: s.needle.grips[i],
+        };
+        s.previous[i] = start;
+        s.psms[i].commands += 1;
+        s.motions[i] = Some(motion);
+        // A motion of no length ends at once.
+        s.settle(now);
+        Ok(id)
     }
 
-    fn move_jaw(&self, side: Side, angle_rad: f64) -> Result<(), RobotError> {
+    /// Run a motion to its end now: the clock advances by what it takes.
+    fn finish_now(&self, side: Side, id: u64) {
+        let tracker = MockMotion {
+            world: self.clone(),
+            side,
+            id,
+            jaw: false,
+        };
+        let _ = tracker.wait(Duration::MAX);
+    }
+
+    /// Begin a motion of `side`'s jaw to `angle_rad`; its id.
+    fn move_jaw(&self, side: Side, angle_rad: f64) -> Result<u64, RobotError> {
         let mut s = self.lock();
         let name = format!("{}/jaw", side.arm_name());
         if !angle_rad.is_finite() || angle_rad < 0.0 || angle_rad > s.config.jaw_max_rad {
@@ -723,8 +862,76 @@ impl MockDvrk {
                 s.thread.on_grasp(&jaw_tip);
             }
         }
-        drop(s);
-        self.clock.advance(Duration::from_secs_f64(secs));
+        let id = s.next_motion;
+        s.next_motion += 1;
+        let now = self.clock.now();
+        s.jaw_motions[i] = Some((id, now + Duration::from_secs_f64(secs)));
+        s.settle(now);
+        Ok(id)
+    }
+}
+
+/// A motion of the mock, on the simulated clock: waiting on it advances the clock (at the
+/// clock's pace, if it has one) up to its end, or the end of the wait, whichever comes first.
+#[derive(Clone, Debug)]
+struct MockMotion {
+    world: MockDvrk,
+    side: Side,
+    id: u64,
+    jaw: bool,
+}
+
+impl MockMotion {
+    /// When the motion ends, if it is under way.
+    fn end(&self) -> Option<Duration> {
+        let s = self.world.lock();
+        let i = self.side.index();
+        if self.jaw {
+            s.jaw_motions[i]
+                .filter(|(id, _)| *id == self.id)
+                .map(|(_, e)| e)
+        } else {
+            s.motions[i]
+                .as_ref()
+                .filter(|m| m.id == self.id)
+                .map(|m| m.end)
+        }
+    }
+}
+
+impl MotionTracker for MockMotion {
+    fn is_busy(&self) -> bool {
+        self.end().is_some()
+    }
+
+    fn wait(&self, timeout: Duration) -> Result<(), RobotError> {
+        let Some(end) = self.end() else {
+            return Ok(());
+        };
+        let now = self.world.clock.now();
+        let until = end.min(now.saturating_add(timeout));
+        self.world.clock.advance(until.saturating_sub(now));
+        if self.is_busy() {
+            Err(RobotError::Timeout {
+                arm: self.side.arm_name().into(),
+                after_s: timeout.as_secs_f64(),
+            })
+        } else {
+            Ok(())
+        }
+    }
+
+    fn stop(&self) -> Result<(), RobotError> {
+        if self.is_busy() {
+            let now = self.world.clock.now();
+            let mut s = self.world.lock();
+            let i = self.side.index();
+            if self.jaw {
+                s.jaw_motions[i] = None;
+            } else {
+                s.stop(i, now, false);
+            }
+        }
         Ok(())
     }
 }
@@ -835,15 +1042,29 @@ impl Arm for MockArm {
     fn setpoint_cp(&self) -> Result<Pose, RobotError> {
         Ok(self.world.lock().psms[self.side.index()].setpoint)
     }
+    /// Begins the motion; waiting on the handle runs it on the simulated clock.
     fn move_cp(&self, goal: &Pose) -> Result<MoveHandle, RobotError> {
-        self.world.move_to(self.side, goal)?;
-        Ok(MoveHandle::done())
+        let id = self.world.move_to(self.side, goal)?;
+        Ok(MoveHandle::new(Arc::new(MockMotion {
+            world: self.world.clone(),
+            side: self.side,
+            id,
+            jaw: false,
+        })))
     }
+    /// The mock has no servo loop: the setpoint is reached as a motion would, at once.
     fn servo_cp(&self, goal: &Pose) -> Result<(), RobotError> {
-        self.world.move_to(self.side, goal)
+        let id = self.world.move_to(self.side, goal)?;
+        self.world.finish_now(self.side, id);
+        Ok(())
     }
+    /// Stops the arm's motion where it is now, and its jaw's.
     fn hold(&self) -> Result<(), RobotError> {
-        self.world.lock().psms[self.side.index()].commands += 1;
+        let now = self.world.clock.now();
+        let mut s = self.world.lock();
+        let i = self.side.index();
+        s.stop(i, now, true);
+        s.psms[i].commands += 1;
         Ok(())
     }
     fn set_max_speed(&self, limits: SpeedLimits) -> Result<(), RobotError> {
@@ -879,16 +1100,23 @@ impl Jaw for MockJaw {
     fn measured_jp(&self) -> Result<f64, RobotError> {
         Ok(self.world.lock().psms[self.side.index()].jaw_rad)
     }
+    /// The jaw's opening (and what it grasps or lets go) is decided when commanded; the
+    /// handle's wait runs the time it takes, which a hold cuts short.
     fn move_jp(&self, angle_rad: f64) -> Result<MoveHandle, RobotError> {
-        self.world.move_jaw(self.side, angle_rad)?;
-        Ok(MoveHandle::done())
+        let id = self.world.move_jaw(self.side, angle_rad)?;
+        Ok(MoveHandle::new(Arc::new(MockMotion {
+            world: self.world.clone(),
+            side: self.side,
+            id,
+            jaw: true,
+        })))
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use stitch_robot::{Clock, JAW_OPEN_RAD};
+    use stitch_robot::JAW_OPEN_RAD;
 
     fn world(seed: u64, sigma: f64) -> MockDvrk {
         let scene = SceneConfig {
@@ -915,7 +1143,9 @@ mod tests {
         let _ = w.take_tip_path();
         let _ = arm
             .move_cp(&moved(&start, Vector::new(0.0, 0.02, 0.0)))
-            .expect("moves");
+            .expect("moves")
+            .wait(Duration::MAX)
+            .expect("ends");
         // 2 cm at 2 cm/s.
         assert_eq!(w.clock().now(), Duration::from_secs(1));
         let after = w.needle_truth().pose;
@@ -936,7 +1166,11 @@ mod tests {
             start.translation,
             UnitQuaternion::from_euler_angles(0.0, 0.0, 0.25),
         );
-        let _ = arm.move_cp(&goal).expect("turns");
+        let _ = arm
+            .move_cp(&goal)
+            .expect("turns")
+            .wait(Duration::MAX)
+            .expect("ends");
         assert!((w.clock().now().as_secs_f64() - 0.5).abs() < 1e-9);
     }
 
@@ -950,27 +1184,54 @@ mod tests {
     fn a_jaw_closing_across_the_wire_grasps_and_one_beside_it_does_not() {
         let w = world(1, 0.0);
         let (left, jaw) = (w.arm(Side::Left), w.jaw(Side::Left));
-        let _ = jaw.open().expect("opens");
+        let _ = jaw
+            .open()
+            .expect("opens")
+            .wait(Duration::MAX)
+            .expect("ends");
         let _ = left
             .move_cp(&left_across(&w, 0.5, Vector::new(0.0, 0.0, 0.001)))
-            .expect("moves");
-        let _ = jaw.close().expect("closes");
+            .expect("moves")
+            .wait(Duration::MAX)
+            .expect("ends");
+        let _ = jaw
+            .close()
+            .expect("closes")
+            .wait(Duration::MAX)
+            .expect("ends");
         assert!(w.needle_truth().held_by(Side::Left));
         // The right lets go: the left keeps it, nothing falls.
-        let _ = w.jaw(Side::Right).move_jp(JAW_OPEN_RAD).expect("opens");
+        let _ = w
+            .jaw(Side::Right)
+            .move_jp(JAW_OPEN_RAD)
+            .expect("opens")
+            .wait(Duration::MAX)
+            .expect("ends");
         let t = w.needle_truth();
         assert!(t.held_by(Side::Left) && !t.held_by(Side::Right) && !t.dropped);
 
         let w = world(1, 0.0);
-        let _ = w.jaw(Side::Left).open().expect("opens");
+        let _ = w
+            .jaw(Side::Left)
+            .open()
+            .expect("opens")
+            .wait(Duration::MAX)
+            .expect("ends");
         let n = w.needle_truth().pose;
         // 4 mm out of the needle's plane, beyond the blades' reach.
         let off = n * Vector::new(0.0, 0.0, 0.004 + JAW_LENGTH_M);
         let _ = w
             .arm(Side::Left)
             .move_cp(&left_across(&w, 0.5, off))
-            .expect("moves");
-        let _ = w.jaw(Side::Left).close().expect("closes");
+            .expect("moves")
+            .wait(Duration::MAX)
+            .expect("ends");
+        let _ = w
+            .jaw(Side::Left)
+            .close()
+            .expect("closes")
+            .wait(Duration::MAX)
+            .expect("ends");
         assert!(!w.needle_truth().held_by(Side::Left));
     }
 
@@ -997,12 +1258,24 @@ mod tests {
     fn each_grasp_perturbs_the_needle_by_the_seeded_stream() {
         let grasp_after = |seed| {
             let w = world(seed, 0.001);
-            let _ = w.jaw(Side::Left).open().expect("opens");
+            let _ = w
+                .jaw(Side::Left)
+                .open()
+                .expect("opens")
+                .wait(Duration::MAX)
+                .expect("ends");
             let _ = w
                 .arm(Side::Left)
                 .move_cp(&left_across(&w, 0.5, Vector::zeros()))
-                .expect("moves");
-            let _ = w.jaw(Side::Left).close().expect("closes");
+                .expect("moves")
+                .wait(Duration::MAX)
+                .expect("ends");
+            let _ = w
+                .jaw(Side::Left)
+                .close()
+                .expect("closes")
+                .wait(Duration::MAX)
+                .expect("ends");
             w.needle_truth().grips[1].expect("held")
         };
         assert_eq!(grasp_after(3), grasp_after(3));
@@ -1012,7 +1285,12 @@ mod tests {
     #[test]
     fn a_needle_let_go_in_the_air_falls_and_one_let_go_in_tissue_stays() {
         let w = world(1, 0.0);
-        let _ = w.jaw(Side::Right).open().expect("opens");
+        let _ = w
+            .jaw(Side::Right)
+            .open()
+            .expect("opens")
+            .wait(Duration::MAX)
+            .expect("ends");
         assert!(w.needle_truth().dropped);
 
         let w = world(1, 0.0);
@@ -1026,8 +1304,15 @@ mod tests {
         let _ = w
             .arm(Side::Right)
             .move_cp(&(wanted * grasp.inverse()))
-            .expect("moves");
-        let _ = w.jaw(Side::Right).open().expect("opens");
+            .expect("moves")
+            .wait(Duration::MAX)
+            .expect("ends");
+        let _ = w
+            .jaw(Side::Right)
+            .open()
+            .expect("opens")
+            .wait(Duration::MAX)
+            .expect("ends");
         let t = w.needle_truth();
         assert!(!t.dropped);
         assert_eq!(w.lodged(), Some(0));
