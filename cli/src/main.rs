@@ -24,7 +24,7 @@ use std::sync::Arc;
 use stitch_cli::inputs::MockConfig;
 use stitch_engine::{
     ExploreOptions, Loaded, OutcomeSchedule, PlanErrors, PlanLoader, Report, RunOutcome, Runner,
-    ScriptLimits, ScriptedSupervisor, explore, mermaid, validate,
+    ScriptLimits, ScriptedSupervisor, TimedCommand, explore, mermaid, validate,
 };
 use stitch_primitives::{
     MockPerception, OutcomeModel, ScriptedPrimitives, mock_primitives_observed,
@@ -130,6 +130,17 @@ enum Command {
         /// (scripted robot only).
         #[arg(long)]
         outcomes: Option<PathBuf>,
+        /// The supervisor's commands (JSON list of `{"at_s": 12.5, "command": "pause"}` or
+        /// `{"at": 3, "command": "abort"}`: at a time on the run's clock, mid-step included,
+        /// or before the attempt once that many have started; see docs/cli.md). Mock,
+        /// seeded scripted and --robot ros2 against the sim-node.
+        #[arg(long, value_name = "FILE")]
+        commands: Option<PathBuf>,
+        /// Run the mock's (or the scripted robot's) simulated clock at this many times the
+        /// wall clock's speed (1.0: real time, so a person can watch and command the run);
+        /// default: as fast as it can. The journal is the same at any pace.
+        #[arg(long, value_name = "X")]
+        pace: Option<f64>,
         /// Print the final outcome as JSON instead of the timeline.
         #[arg(long)]
         json: bool,
@@ -387,6 +398,8 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
             journal,
             record_frames,
             outcomes,
+            commands,
+            pace,
             json,
             skip_validation,
             wound,
@@ -402,6 +415,37 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
                     "--outcomes replays a schedule on the scripted robot: add --robot scripted"
                 );
             }
+            if commands.is_some() && outcomes.is_some() {
+                anyhow::bail!(
+                    "--commands and --outcomes: an outcome schedule has its own supervisor \
+                     commands (its \"supervisor\" list); use one"
+                );
+            }
+            if commands.is_some() && no_simulator {
+                anyhow::bail!(
+                    "--commands on a real dVRK: the surgeon at this terminal supervises; type \
+                     the commands (docs/dvrk.md)"
+                );
+            }
+            if let Some(p) = pace {
+                if robot == RobotKind::Ros2 {
+                    anyhow::bail!(
+                        "--pace sets a simulated clock's speed; over ROS 2 the clock is the wall's"
+                    );
+                }
+                if !(p.is_finite() && p > 0.0) {
+                    anyhow::bail!("--pace {p}: expected a positive number (1.0: real time)");
+                }
+            }
+            let supervision = Supervision {
+                pace,
+                commands: commands
+                    .as_deref()
+                    .map(read_commands)
+                    .transpose()?
+                    .unwrap_or_default(),
+                live: !json,
+            };
             let mut mock = read_mock_config(mock_config.as_deref())?;
             mock.scene.wound = wound.apply(mock.scene.wound.clone());
             let spec = mock.scene.wound.clone();
@@ -431,6 +475,7 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
                         robot: robot.name(),
                         mock_config: mock_config.as_deref(),
                         outcomes: outcomes.as_deref(),
+                        commands: commands.as_deref(),
                         perception: perception.name(),
                         segmenter: &segmenter,
                         wound: &spec,
@@ -455,7 +500,7 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
             let report = match robot {
                 RobotKind::Scripted => {
                     let schedule = outcomes.as_deref().map(OutcomeSchedule::read).transpose()?;
-                    run_scripted(&loaded, seed, schedule, rec)?
+                    run_scripted(&loaded, seed, schedule, rec, &supervision)?
                 }
                 RobotKind::Ros2 | RobotKind::Mock => {
                     let perception = perception.of(&mock, &segmenter)?;
@@ -465,10 +510,11 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
                             dvrk_config,
                             domain_id,
                             simulator: !no_simulator,
+                            supervision: &supervision,
                         };
                         run_ros2(&loaded, &mock.scene, perception, seed, on)?
                     } else {
-                        run_mock(&loaded, &mock.scene, perception, seed, rec)?
+                        run_mock(&loaded, &mock.scene, perception, seed, rec, &supervision)?
                     }
                 }
             };
@@ -547,6 +593,62 @@ struct Ros2Run<'a> {
     domain_id: Option<String>,
     /// Against `stitch sim-node`, with its side channel (else a real dVRK).
     simulator: bool,
+    /// Commands and the live timeline.
+    supervision: &'a Supervision,
+}
+
+/// How a run is supervised and shown, beyond its robot.
+#[derive(Debug, Default)]
+pub(crate) struct Supervision {
+    /// The simulated clock's pace (`--pace`); `None`: as fast as it can.
+    pub pace: Option<f64>,
+    /// The supervisor's commands (`--commands`).
+    pub commands: Vec<TimedCommand>,
+    /// Print each step as it ends, on standard error.
+    pub live: bool,
+}
+
+impl Supervision {
+    /// The simulated clock for this run.
+    pub fn clock(&self) -> SimClock {
+        self.pace.map_or_else(SimClock::new, SimClock::paced)
+    }
+
+    /// `runner`, printing each step as it ends where asked.
+    pub fn show<'a>(&self, runner: Runner<'a>) -> Runner<'a> {
+        if self.live {
+            runner.on_attempt(Box::new(|throw, a| {
+                eprintln!("{}", show::attempt_line(throw, a));
+            }))
+        } else {
+            runner
+        }
+    }
+}
+
+/// A `--commands` file: a JSON list of timed commands.
+pub(crate) fn read_commands(path: &Path) -> anyhow::Result<Vec<TimedCommand>> {
+    let text = std::fs::read_to_string(path)
+        .with_context(|| format!("cannot read the commands {}", path.display()))?;
+    commands_from_json(&path.display().to_string(), &text)
+}
+
+/// Timed commands from JSON text; errors name the file, line and column.
+pub(crate) fn commands_from_json(file: &str, text: &str) -> anyhow::Result<Vec<TimedCommand>> {
+    let commands: Vec<TimedCommand> = serde_json::from_str(text).map_err(|e| {
+        anyhow::anyhow!(
+            "{file}:{}:{}: {}",
+            e.line(),
+            e.column(),
+            e.to_string().split(" at line").next().unwrap_or_default()
+        )
+    })?;
+    for (i, c) in commands.iter().enumerate() {
+        if c.at_s.is_some_and(|t| !(t.is_finite() && t >= 0.0)) {
+            anyhow::bail!("{file}: command {}: at_s must be a time ≥ 0 s", i + 1);
+        }
+    }
+    Ok(commands)
 }
 
 #[cfg(feature = "ros2")]
@@ -564,9 +666,27 @@ fn run_ros2(
         None => stitch_dvrk::ros2::Ros2Options::from_env().map_err(anyhow::Error::msg)?,
     };
     if on.simulator {
-        ros2::run_ros2(loaded, scene, perception, seed, &ros, &config, on.recorder)
+        ros2::run_ros2(
+            loaded,
+            scene,
+            perception,
+            seed,
+            &ros,
+            &config,
+            on.recorder,
+            on.supervision,
+        )
     } else {
-        ros2::run_real(loaded, scene, perception, seed, &ros, &config, on.recorder)
+        ros2::run_real(
+            loaded,
+            scene,
+            perception,
+            seed,
+            &ros,
+            &config,
+            on.recorder,
+            on.supervision,
+        )
     }
 }
 
@@ -637,8 +757,9 @@ pub(crate) fn run_mock(
     perception: MockPerception,
     seed: u64,
     recorder: Option<&Recorder>,
+    supervision: &Supervision,
 ) -> anyhow::Result<Report> {
-    let clock = SimClock::new();
+    let clock = supervision.clock();
     let tap = recorder.map(|r| r.tap(Arc::new(clock.clone())));
     let frames = tap.as_ref().and_then(stitch_recorder::Tap::frames);
     let (primitives, world) =
@@ -655,15 +776,18 @@ pub(crate) fn run_mock(
     };
     let plan = Arc::new(loaded.plan.clone());
     let mut supervisor = mock::MockSupervisor::new(world, Arc::clone(&plan));
-    Ok(Runner::new(
+    if !supervision.commands.is_empty() {
+        supervisor = supervisor.commanding(supervision.commands.clone());
+    }
+    let runner = Runner::new(
         plan,
         &mut primitives,
         &mut supervisor,
         Arc::new(clock),
         Some(seed),
     )
-    .streaming(recorder.map(Recorder::sink))
-    .run())
+    .streaming(recorder.map(Recorder::sink));
+    Ok(supervision.show(runner).run())
 }
 
 pub(crate) fn run_scripted(
@@ -671,26 +795,28 @@ pub(crate) fn run_scripted(
     seed: u64,
     outcomes: Option<OutcomeSchedule>,
     recorder: Option<&Recorder>,
+    supervision: &Supervision,
 ) -> anyhow::Result<Report> {
-    let clock = SimClock::new();
+    let clock = supervision.clock();
     let plan = Arc::new(loaded.plan.clone());
     let replaying = outcomes.is_some();
     let (mut primitives, mut supervisor) = match outcomes {
         Some(schedule) => schedule.into_parts(clock.clone()),
         None => (
             ScriptedPrimitives::seeded(seed, OutcomeModel::default(), clock.clone()),
-            // Stands in for the supervising surgeon: no commands; interventions recover.
-            ScriptedSupervisor::default(),
+            // Stands in for the supervising surgeon: the --commands given; interventions
+            // recover.
+            ScriptedSupervisor::new(supervision.commands.clone(), []),
         ),
     };
     let seed = (!replaying).then_some(seed);
-    Ok(Runner::new(
+    let runner = Runner::new(
         plan,
         &mut primitives,
         &mut supervisor,
         Arc::new(clock),
         seed,
     )
-    .streaming(recorder.map(Recorder::sink))
-    .run())
+    .streaming(recorder.map(Recorder::sink));
+    Ok(supervision.show(runner).run())
 }

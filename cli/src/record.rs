@@ -29,6 +29,8 @@ pub struct RunSettings<'a> {
     pub mock_config: Option<&'a Path>,
     /// The outcome schedule replayed, if any.
     pub outcomes: Option<&'a Path>,
+    /// The supervisor's command schedule (`--commands`), if any.
+    pub commands: Option<&'a Path>,
     /// `--perception`.
     pub perception: &'static str,
     /// `--segmenter`.
@@ -69,6 +71,13 @@ pub fn run_info(s: &RunSettings<'_>) -> anyhow::Result<RunInfo> {
             read(p)?,
         ));
     }
+    if let Some(p) = s.commands {
+        files.push((
+            COMMANDS.to_string(),
+            "application/json".to_string(),
+            read(p)?,
+        ));
+    }
     Ok(RunInfo {
         program: format!("stitch {}", env!("CARGO_PKG_VERSION")),
         plan_file: s.plan.display().to_string(),
@@ -83,6 +92,8 @@ pub fn run_info(s: &RunSettings<'_>) -> anyhow::Result<RunInfo> {
 
 /// The attachment an outcome schedule is recorded as.
 pub const OUTCOMES: &str = "outcomes.json";
+/// The attachment a supervisor's command schedule (`--commands`) is recorded as.
+pub const COMMANDS: &str = "commands.json";
 
 /// Start recording a run to `path`: its metadata and attachments are on disk before
 /// anything moves.

@@ -230,14 +230,26 @@ pub fn replay(args: &ReplayArgs) -> anyhow::Result<u8> {
     };
     let recorder = record::start(&out, &info, false, frames_hz)?;
     let seed_value = seed.unwrap_or(0);
+    // The supervisor's recorded command schedule, given again at the same times.
+    let supervision = crate::Supervision {
+        commands: rec
+            .attachment(record::COMMANDS)?
+            .map(|text| crate::commands_from_json(record::COMMANDS, &text))
+            .transpose()?
+            .unwrap_or_default(),
+        ..crate::Supervision::default()
+    };
     let run = match robot {
-        RobotKind::Scripted => crate::run_scripted(&loaded, seed_value, schedule, Some(&recorder)),
+        RobotKind::Scripted => {
+            crate::run_scripted(&loaded, seed_value, schedule, Some(&recorder), &supervision)
+        }
         _ => crate::run_mock(
             &loaded,
             &mock.scene,
             perception.of(&mock, &segmenter)?,
             seed_value,
             Some(&recorder),
+            &supervision,
         ),
     };
     let finished = record::finish(recorder);

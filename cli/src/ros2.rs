@@ -293,6 +293,7 @@ pub fn run_ros2(
     ros: &Ros2Options,
     config: &DvrkConfig,
     recorder: Option<&Recorder>,
+    supervision: &crate::Supervision,
 ) -> anyhow::Result<Report> {
     let timeout = Duration::from_secs_f64(config.connect_timeout_s);
     let oracle = Oracle::connect(ros, timeout).map_err(|e| {
@@ -369,12 +370,11 @@ pub fn run_ros2(
             d.wait_fresh(timeout).map_err(|e| e.to_string())
         }),
         Arc::clone(&plan),
-    );
-    Ok(
-        Runner::new(plan, &mut primitives, &mut supervisor, clock, Some(seed))
-            .streaming(recorder.map(Recorder::sink))
-            .run(),
     )
+    .commanding(supervision.commands.clone());
+    let runner = Runner::new(plan, &mut primitives, &mut supervisor, clock, Some(seed))
+        .streaming(recorder.map(Recorder::sink));
+    Ok(supervision.show(runner).run())
 }
 
 /// The primitives' robot over ROS 2: the dVRK's first two arms and jaws (right, left), the
@@ -452,6 +452,7 @@ pub fn run_real(
     ros: &Ros2Options,
     config: &DvrkConfig,
     recorder: Option<&Recorder>,
+    supervision: &crate::Supervision,
 ) -> anyhow::Result<Report> {
     let MockPerception::Pipeline(_, segmenter) = perception else {
         anyhow::bail!(
@@ -508,15 +509,15 @@ pub fn run_real(
          sense (a caught thread, a missed exit point) is yours to see: type pause or abort."
     );
     let mut supervisor = ConsoleSupervisor::stdin();
-    Ok(Runner::new(
+    let runner = Runner::new(
         Arc::new(loaded.plan.clone()),
         &mut primitives,
         &mut supervisor,
         clock,
         Some(seed),
     )
-    .streaming(recorder.map(Recorder::sink))
-    .run())
+    .streaming(recorder.map(Recorder::sink));
+    Ok(supervision.show(runner).run())
 }
 
 /// How often a recorded run samples the dVRK's arms between the primitives' calls, s.

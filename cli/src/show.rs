@@ -197,6 +197,19 @@ pub fn timeline(plan: &Plan, report: &Report, source: &str, robot: &str, clock: 
     )
 }
 
+/// One line for a step attempt as it ends, for the timeline printed while the run goes:
+/// `throw 1  12.3 s  insert  4.1 s  ok, entry error 0.21 mm`.
+pub fn attempt_line(throw: usize, a: &stitch_engine::Attempt) -> String {
+    format!(
+        "throw {} {:>7.1} s  {:<18} {:>5.1} s  {}",
+        throw + 1,
+        a.start_s,
+        attempt_label(a.primitive, a.attempt),
+        a.duration_s,
+        outcome_text(&a.outcome)
+    )
+}
+
 /// `insert`, `insert #2`, ...: a step and, after the first, which attempt.
 fn attempt_label(primitive: &str, attempt: u32) -> String {
     if attempt > 0 {

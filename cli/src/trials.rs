@@ -277,6 +277,7 @@ fn trial(
                 robot: RobotKind::Mock.name(),
                 mock_config: args.mock_config.as_deref(),
                 outcomes: None,
+                commands: None,
                 perception: args.perception.name(),
                 segmenter: &crate::segmenter::SegmenterChoice::Classical,
                 wound: &mock.scene.wound,
@@ -293,6 +294,7 @@ fn trial(
         perception.clone(),
         seed,
         recorder.as_ref(),
+        &crate::Supervision::default(),
     )?;
     let record = TrialRecord::from_report(&policy.name, seed, &policy.loaded.plan, &report);
     match recorder {
