@@ -5,7 +5,6 @@ use proptest::prelude::*;
 use std::cell::Cell;
 use std::rc::Rc;
 use std::sync::Arc;
-use std::time::Duration;
 use stitch_engine::{
     CheckpointRequest, Cmp, Condition, End, InterventionRequest, InterventionResult, Moment,
     NextPoll, Node, Plan, Quantity, Report, Runner, ScriptedSupervisor, SourcePos, Step,
@@ -221,8 +220,8 @@ impl Supervisor for Noted {
     fn poll(&mut self, at: &Moment) -> Option<SupervisorCommand> {
         self.inner.poll(at)
     }
-    fn next_poll(&self, now: Duration) -> Option<NextPoll> {
-        self.inner.next_poll(now)
+    fn next_poll(&self, at: &Moment) -> Option<NextPoll> {
+        self.inner.next_poll(at)
     }
     fn source(&self) -> &str {
         self.inner.source()

@@ -9,13 +9,13 @@
 use proptest::prelude::*;
 use std::collections::BTreeMap;
 use stitch_engine::{
-    AbortCause, Entry, FailureClass, InterventionResult, Plan, Rebuilt, RunOutcome,
+    AbortCause, During, Entry, FailureClass, InterventionResult, Plan, Rebuilt, RunOutcome,
     SupervisorCommand,
 };
-use stitch_primitives::{Scripted, StepKind};
+use stitch_primitives::{Scripted, StepKind, StepOutcome};
 use stitch_tests::{
     Run, cases, commands, conditional_plans, conditional_plans_with, interventions, plans,
-    run_scripted, run_scripted_deciding, token,
+    run_scripted, run_scripted_deciding, timed_commands, token,
 };
 
 const DEFAULT_CASES: u32 = 4_000;
@@ -352,5 +352,72 @@ proptest! {
         for v in &found.verdicts {
             prop_assert!(v.holds, "{} fails: {:?}", v.says, v.path);
         }
+    }
+}
+
+proptest! {
+    #![proptest_config(config())]
+
+    /// Commands at arbitrary times on the run's clock, most of them in the middle of a step.
+    #[test]
+    fn commands_mid_step_spend_no_budget_and_the_journal_says_what_they_interrupted(
+        plan in plans(),
+        outcomes in prop::collection::vec(token(), 0..150),
+        cmds in timed_commands(4),
+        ivs in interventions(),
+    ) {
+        let run = run_scripted(plan.clone(), outcomes.clone(), cmds.clone(), ivs.clone());
+        let records = run.report.journal.records();
+        let finished = matches!(records.last().map(|r| &r.entry), Some(Entry::Finished { .. }));
+        prop_assert!(finished, "the journal ends with the run's end");
+        // A retry or an intervention follows a failure of that very step, never an
+        // interruption: the last attempt's end (or an unobserved condition) before it says so.
+        let mut last_end: Option<(usize, usize, bool)> = None;
+        let mut last_mid: Option<During> = None;
+        for r in records {
+            match &r.entry {
+                Entry::StepEnd { throw, step, attempt, outcome, .. } => {
+                    let failed = matches!(outcome, StepOutcome::Failed(_));
+                    if let StepOutcome::Interrupted { committed, .. } = outcome {
+                        // The command that ended it landed in it (mid-step), or, after a
+                        // mid-step pause, while it was paused.
+                        let d = last_mid.expect("a command landed in the interrupted attempt");
+                        prop_assert_eq!((d.throw, d.step, d.attempt), (*throw, *step, *attempt));
+                        prop_assert!(*committed || !d.committed);
+                    }
+                    last_end = Some((*throw, *step, failed));
+                }
+                Entry::Unobserved { throw, step, .. } => last_end = Some((*throw, *step, true)),
+                Entry::Retry { throw, step, .. } | Entry::InterventionRequested { throw, step, .. } => {
+                    prop_assert_eq!(last_end, Some((*throw, *step, true)), "{:?} after {:?}", r.entry, last_end);
+                }
+                Entry::Supervisor { during: Some(d), .. } => last_mid = Some(*d),
+                _ => {}
+            }
+        }
+        prop_assert!(run.report.interventions <= 2);
+        // Nothing moves after an abort or e-stop; the arms hold.
+        let stop = records.iter().position(|r| matches!(r.entry,
+            Entry::Supervisor { command: SupervisorCommand::Abort | SupervisorCommand::EStop, acted: true, .. }));
+        if let Some(stop) = stop {
+            prop_assert!(matches!(run.report.outcome, RunOutcome::Aborted { .. }), "{:?}", run.report.outcome);
+            let moved = records[stop..].iter().any(|r| matches!(r.entry, Entry::StepStart { .. } | Entry::Condition { .. }));
+            prop_assert!(!moved, "a step or a condition after the stop");
+            prop_assert_eq!(run.primitives.holds.last().copied(), Some(run.primitives.calls.len()));
+        }
+        // The journal rebuilds the runner's report, and the same schedule gives the same
+        // journal.
+        let steps: Vec<usize> = run.plan.throws.iter().map(|t| t.program.len()).collect();
+        let whole = Rebuilt::from_journal(records, Some(&steps)).expect("its own journal");
+        // (Times at a command's instant are not whole seconds: the journal keeps them to the
+        // nanosecond, so attempts are compared without their times.)
+        let seen = |t: &[stitch_engine::ThrowSummary]| -> Vec<Vec<(usize, u32, StepOutcome)>> {
+            t.iter()
+                .map(|t| t.attempts.iter().map(|a| (a.step, a.attempt, a.outcome.clone())).collect())
+                .collect()
+        };
+        prop_assert_eq!(seen(&whole.throws), seen(&run.report.throws));
+        let again = run_scripted(plan, outcomes, cmds, ivs);
+        prop_assert_eq!(again.report.journal.records(), records);
     }
 }

@@ -3,7 +3,6 @@
 
 use std::io::BufRead;
 use std::sync::mpsc::{Receiver, TryRecvError};
-use std::time::Duration;
 use stitch_engine::{
     CheckpointRequest, InterventionRequest, InterventionResult, LIVE_POLL, Moment, NextPoll,
     Supervisor, SupervisorCommand,
@@ -100,7 +99,7 @@ impl ConsoleSupervisor {
 }
 
 impl Supervisor for ConsoleSupervisor {
-    fn next_poll(&self, _now: Duration) -> Option<NextPoll> {
+    fn next_poll(&self, _at: &Moment) -> Option<NextPoll> {
         Some(NextPoll::Every(LIVE_POLL))
     }
 
@@ -228,10 +227,12 @@ mod tests {
     }
 
     fn at(attempts: usize) -> Moment {
+        use std::time::Duration;
         Moment {
             attempts,
             now: Duration::ZERO,
             mid_step: false,
+            committed: false,
         }
     }
 

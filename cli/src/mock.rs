@@ -1,7 +1,6 @@
 //! The supervising surgeon's stand-in on the mock dVRK.
 
 use std::sync::Arc;
-use std::time::Duration;
 use stitch_engine::{
     CheckpointRequest, InterventionRequest, InterventionResult, Moment, NeedleHolder, NextPoll,
     Plan, ScriptedSupervisor, Supervisor, SupervisorCommand, TimedCommand,
@@ -66,8 +65,8 @@ impl Supervisor for MockSupervisor {
         self.commands.poll(at)
     }
 
-    fn next_poll(&self, now: Duration) -> Option<NextPoll> {
-        self.commands.next_poll(now)
+    fn next_poll(&self, at: &Moment) -> Option<NextPoll> {
+        self.commands.next_poll(at)
     }
 
     fn source(&self) -> &str {

@@ -546,10 +546,10 @@ impl Supervisor for RecordedSupervisor {
         }
     }
 
-    fn next_poll(&self, now: Duration) -> Option<NextPoll> {
+    fn next_poll(&self, at: &Moment) -> Option<NextPoll> {
         let t = self.commands.front()?.at_s?;
         Some(NextPoll::In(
-            Duration::from_secs_f64(t.max(0.0)).saturating_sub(now),
+            Duration::from_secs_f64(t.max(0.0)).saturating_sub(at.now),
         ))
     }
 

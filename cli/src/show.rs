@@ -361,7 +361,8 @@ pub fn exploration(
     let _ = writeln!(
         s,
         "  branching on every step outcome ({}),{also} every intervention result, and up to {} \
-         supervisor commands per path",
+         supervisor commands per path, before a step or in its middle (before and past its \
+         commit point)",
         outcomes.join(", "),
         options.max_commands
     );

@@ -12,10 +12,12 @@
 //! rank (step index, then retries + interventions, then intervention → re-run), and bounds the
 //! supervisor's commands per path. Together they make every path finite.
 
-use crate::machine::{Ctx, Cursor, Effect, Event, Mission, Pending, State, pending, state_parts};
+use crate::machine::{
+    Ctx, Cursor, Effect, Event, Interrupted, Mission, Pending, State, pending, state_parts,
+};
 use crate::plan::{NeedleHolder, Op, Plan, caps};
 use crate::schedule::OutcomeSchedule;
-use crate::supervisor::{InterventionResult, SupervisorCommand, TimedCommand};
+use crate::supervisor::{InStep, InterventionResult, SupervisorCommand, TimedCommand};
 use stateright::{Checker, Model, Property};
 use statig::blocking::{InitializedStateMachine, IntoStateMachineExt};
 use std::collections::{BTreeMap, BTreeSet, HashMap};
@@ -74,6 +76,10 @@ pub enum Violation {
     NoHoldAfterStop,
     /// A transition the supervisor did not cause made no progress (a possible cycle).
     NoProgress,
+    /// A pause or take-over did not make the arms hold.
+    NoHoldOnInterrupt,
+    /// A supervisor command alone spent a retry or an intervention.
+    BudgetByCommand,
 }
 
 impl Violation {
@@ -176,6 +182,9 @@ pub enum Action {
     Attempt(Scripted),
     /// The supervisor gives a command (before an attempt, or while paused or taken over).
     Command(SupervisorCommand),
+    /// The supervisor gives a command in the middle of the attempt, its motion stopped there:
+    /// before the step's commit point, or (`true`) past it.
+    Interrupt(SupervisorCommand, bool),
     /// The requested intervention ends so.
     Intervention(InterventionResult),
     /// The supervisor is gone while the run waits for a command.
@@ -193,6 +202,8 @@ impl fmt::Display for Action {
         match self {
             Action::Attempt(t) => write!(f, "{t}"),
             Action::Command(c) => write!(f, "{c}"),
+            Action::Interrupt(c, false) => write!(f, "{c} mid-step"),
+            Action::Interrupt(c, true) => write!(f, "{c} mid-step (committed)"),
             Action::Intervention(InterventionResult::Recovered) => f.write_str("recovered"),
             Action::Intervention(InterventionResult::Failed) => f.write_str("intervention failed"),
             Action::SupervisorGone => f.write_str("supervisor gone"),
@@ -257,6 +268,27 @@ impl EngineModel {
         }
     }
 
+    /// Whether the step has a commit point (what it does to the needle, tissue or thread
+    /// cannot be undone by running it again from there).
+    fn commits(kind: &StepKind) -> bool {
+        matches!(
+            kind,
+            StepKind::Insert(_) | StepKind::Extract(_) | StepKind::Cinch(_) | StepKind::Handover(_)
+        )
+    }
+
+    /// Where a step that succeeds leaves the needle that was at `before`.
+    fn effect(kind: &StepKind, before: Needle) -> Needle {
+        match (kind, before) {
+            // Insertion ends with the right jaw opening around a needle now in the tissue.
+            (StepKind::Insert(_), _) => Needle::Tissue,
+            (StepKind::Extract(_), Needle::Tissue) => Needle::Left,
+            // The right jaw closes on the needle, then the left opens: the right holds it.
+            (StepKind::Handover(_), Needle::Left) => Needle::Right,
+            (_, n) => n,
+        }
+    }
+
     /// The model's physics for one attempt: checks what the step does with the jaws, and
     /// where the needle ends up.
     fn attempt(&self, world: &mut World, kind: &StepKind, token: Scripted) {
@@ -288,14 +320,7 @@ impl EngineModel {
             // still in the tissue.
             return;
         }
-        world.needle = match (kind, before) {
-            // Insertion ends with the right jaw opening around a needle now in the tissue.
-            (StepKind::Insert(_), _) => Needle::Tissue,
-            (StepKind::Extract(_), Needle::Tissue) => Needle::Left,
-            // The right jaw closes on the needle, then the left opens: the right holds it.
-            (StepKind::Handover(_), Needle::Left) => Needle::Right,
-            (_, n) => n,
-        };
+        world.needle = Self::effect(kind, before);
     }
 
     /// Progress rank of a state; `None` for states the supervisor alone leaves.
@@ -339,6 +364,43 @@ impl EngineModel {
         Some((asked.min(cap), v))
     }
 
+    /// The world after a command lands mid-step: the arms hold at once; an abort stops
+    /// everything; a take-over past the step's commit point leaves the step to the surgeon,
+    /// who finishes it (the hand-back goes on with the step after it).
+    fn interrupted(
+        &self,
+        s: &mut ExploreState,
+        kind: &StepKind,
+        command: SupervisorCommand,
+        committed: bool,
+        effects: &[Effect],
+    ) {
+        let holds = effects.contains(&Effect::HoldArms);
+        match (command, s.machine.state()) {
+            (SupervisorCommand::Abort | SupervisorCommand::EStop, State::Aborted { .. }) => {
+                s.world.stopped = true;
+                if !holds {
+                    s.world.violate(Violation::NoHoldAfterStop);
+                }
+            }
+            (SupervisorCommand::Pause, State::Paused { .. }) => {
+                if !holds {
+                    s.world.violate(Violation::NoHoldOnInterrupt);
+                }
+            }
+            (SupervisorCommand::TakeOver, State::TakenOver { .. }) => {
+                if !holds {
+                    s.world.violate(Violation::NoHoldOnInterrupt);
+                }
+                if committed {
+                    s.world.needle = Self::effect(kind, s.world.needle);
+                }
+            }
+            // Any other landing of a stopping command mid-step leaves the motion running.
+            _ => s.world.violate(Violation::NoHoldOnInterrupt),
+        }
+    }
+
     fn dispatch(machine: &mut InitializedStateMachine<Mission>, event: Event) -> Vec<Effect> {
         let mut ctx = Ctx::default();
         machine.handle_with_context(&event, &mut ctx);
@@ -372,18 +434,24 @@ impl Model for EngineModel {
         let more_commands = s.world.commands < self.options.max_commands;
         match pending(s.machine.state()) {
             Pending::Done | Pending::Start => {}
-            Pending::Attempt(_) => {
+            Pending::Attempt(c) => {
                 actions.extend(self.options.outcomes.iter().map(|t| Action::Attempt(*t)));
                 if more_commands {
-                    actions.extend(
-                        [
-                            SupervisorCommand::Pause,
-                            SupervisorCommand::TakeOver,
-                            SupervisorCommand::Abort,
-                            SupervisorCommand::EStop,
-                        ]
-                        .map(Action::Command),
-                    );
+                    const STOPPING: [SupervisorCommand; 4] = [
+                        SupervisorCommand::Pause,
+                        SupervisorCommand::TakeOver,
+                        SupervisorCommand::Abort,
+                        SupervisorCommand::EStop,
+                    ];
+                    actions.extend(STOPPING.map(Action::Command));
+                    // Mid-step: before the commit point, and past it where the step has one.
+                    let commits = s.machine.inner().step_kind(c).is_some_and(Self::commits);
+                    for committed in [false, true] {
+                        if committed && !commits {
+                            continue;
+                        }
+                        actions.extend(STOPPING.map(|k| Action::Interrupt(k, committed)));
+                    }
                 }
             }
             Pending::Intervention(..) => {
@@ -488,11 +556,36 @@ impl Model for EngineModel {
                     Event::StepFinished(StepOutcome::Failed(failure)),
                 );
             }
+            (Pending::Attempt(c), Action::Interrupt(command, committed)) => {
+                by_supervisor = true;
+                if s.world.stopped {
+                    s.world.violate(Violation::MotionAfterStop);
+                }
+                s.world.commands = s.world.commands.saturating_add(1);
+                let effects =
+                    Self::dispatch(&mut s.machine, Event::Interrupt { command, committed });
+                let kind = *last.machine.inner().step_kind(c)?;
+                self.interrupted(&mut s, &kind, command, committed, &effects);
+            }
             (Pending::Attempt(_) | Pending::Command(_), Action::Command(command))
             | (Pending::Checkpoint(_), Action::Checkpoint(command)) => {
                 by_supervisor = true;
                 if command != SupervisorCommand::Go {
                     s.world.commands = s.world.commands.saturating_add(1);
+                }
+                // A take-over while paused past a step's commit point: the surgeon finishes
+                // the step (the hand-back goes on with the one after it).
+                if let (
+                    State::Paused {
+                        cursor,
+                        at: Interrupted::Committed,
+                    },
+                    SupervisorCommand::TakeOver,
+                ) = (&before, command)
+                {
+                    if let Some(kind) = last.machine.inner().step_kind(*cursor) {
+                        s.world.needle = Self::effect(kind, s.world.needle);
+                    }
                 }
                 let effects = Self::dispatch(&mut s.machine, Event::Supervisor(command));
                 if matches!(command, SupervisorCommand::Abort | SupervisorCommand::EStop)
@@ -538,6 +631,18 @@ impl Model for EngineModel {
         if s.world.interventions > budget {
             s.world.violate(Violation::Interventions);
         }
+        if by_supervisor {
+            // A command alone never spends a retry or an intervention.
+            let used = |m: &InitializedStateMachine<Mission>| m.inner().interventions_used();
+            let retries = |st: &State| state_parts(st).1.map(|c| (c.throw, c.step, c.retries));
+            let spent_retry = match (retries(&before), retries(after)) {
+                (Some((t0, s0, r0)), Some((t1, s1, r1))) => (t0, s0) == (t1, s1) && r1 > r0,
+                _ => false,
+            };
+            if used(&s.machine) > used(&last.machine) || spent_retry {
+                s.world.violate(Violation::BudgetByCommand);
+            }
+        }
         if !by_supervisor {
             let rank_after = self.rank(after, s.machine.inner().interventions_used());
             let progressed = match (rank_before, rank_after) {
@@ -578,6 +683,12 @@ impl Model for EngineModel {
                 ok(s, Violation::MotionAfterStop)
             }),
             Property::always("hold after stop", |_, s| ok(s, Violation::NoHoldAfterStop)),
+            Property::always("hold on interrupt", |_, s| {
+                ok(s, Violation::NoHoldOnInterrupt)
+            }),
+            Property::always("no budget by command", |_, s| {
+                ok(s, Violation::BudgetByCommand)
+            }),
             Property::always("progress", |_, s| ok(s, Violation::NoProgress)),
             Property::eventually(
                 "ends completed, failed or aborted",
@@ -592,7 +703,7 @@ impl Model for EngineModel {
 
 /// The stateright property names, in the order of [`Model::properties`], with the words the
 /// report uses.
-pub const PROPERTY_NAMES: [(&str, &str); 12] = [
+pub const PROPERTY_NAMES: [(&str, &str); 14] = [
     (
         "extraction retries",
         "extraction retries ≤ 5 (and ≤ the plan's)",
@@ -620,6 +731,14 @@ pub const PROPERTY_NAMES: [(&str, &str); 12] = [
     ),
     ("motion after stop", "no motion after abort or e-stop"),
     ("hold after stop", "abort and e-stop make the arms hold"),
+    (
+        "hold on interrupt",
+        "a pause or take-over, mid-step too, makes the arms hold",
+    ),
+    (
+        "no budget by command",
+        "no supervisor command alone spends a retry or an intervention",
+    ),
     (
         "progress",
         "every engine transition makes progress (no cycles)",
@@ -869,23 +988,54 @@ impl Graph {
 /// choices.
 pub fn schedule_of(actions: impl IntoIterator<Item = Action>) -> OutcomeSchedule {
     let mut schedule = OutcomeSchedule::default();
+    // Attempts started, as the runner counts them: ended by an outcome, or by a command.
     let mut attempts = 0;
+    // An attempt paused mid-step, waiting to go on or to be ended.
+    let mut suspended = false;
     for a in actions {
         match a {
             Action::Attempt(t) => {
                 schedule.outcomes.push(t);
                 attempts += 1;
+                suspended = false;
             }
             Action::Command(command) => {
                 schedule
                     .supervisor
                     .push(TimedCommand::before(attempts, command));
+                if suspended && command != SupervisorCommand::Resume {
+                    // Taken over or stopped while paused mid-step: that attempt ended.
+                    attempts += 1;
+                    suspended = false;
+                }
+            }
+            Action::Interrupt(command, committed) => {
+                let at = if committed {
+                    InStep::Committed
+                } else {
+                    InStep::Start
+                };
+                schedule
+                    .supervisor
+                    .push(TimedCommand::in_attempt(attempts + 1, at, command));
+                // Paused, the attempt goes on after a resume (its outcome is the next
+                // Attempt's); otherwise it ends here, with no outcome drawn.
+                if command == SupervisorCommand::Pause {
+                    suspended = true;
+                } else {
+                    attempts += 1;
+                }
             }
             Action::Intervention(r) => schedule.interventions.push(r),
             Action::Decide(v) => schedule.conditions.push(Some(v)),
             Action::Unobservable => schedule.conditions.push(None),
             Action::Checkpoint(c) => schedule.checkpoints.push(c),
-            Action::SupervisorGone => {}
+            Action::SupervisorGone => {
+                if suspended {
+                    attempts += 1;
+                    suspended = false;
+                }
+            }
         }
     }
     schedule

@@ -35,8 +35,8 @@ pub use runner::{
 pub use schedule::{OutcomeSchedule, ScheduleError};
 pub use script::{API, Angle, Length, Loaded, PlanLoader, ScriptLimits, Time};
 pub use supervisor::{
-    CheckpointRequest, InterventionRequest, InterventionResult, LIVE_POLL, Moment, NextPoll,
-    ScriptedSupervisor, Supervisor, SupervisorCommand, TimedCommand,
+    CheckpointRequest, InStep, InterventionRequest, InterventionResult, LIVE_POLL, Moment,
+    NextPoll, ScriptedSupervisor, Supervisor, SupervisorCommand, TimedCommand,
 };
 pub use validate::{retry_cap, validate};
 

@@ -206,7 +206,12 @@ impl<'a> Runner<'a> {
     /// The supervisor's next command while the run waits on it (paused, taken over): a
     /// schedule's timed command is waited for on the run's clock.
     fn wait_command(&mut self) -> Event {
-        wait_command(&mut *self.supervisor, &*self.clock, &mut self.ctx)
+        wait_command(
+            &mut *self.supervisor,
+            &*self.clock,
+            &mut self.ctx,
+            self.attempts_started,
+        )
     }
 
     /// Run to the end: completed, failed or aborted.
@@ -241,6 +246,7 @@ impl<'a> Runner<'a> {
                         attempts: self.attempts_started,
                         now: self.clock.now(),
                         mid_step: false,
+                        committed: false,
                     };
                     if let Some(command) = self.supervisor.poll(&moment) {
                         self.arriving();
@@ -552,8 +558,19 @@ fn dispatch(
 
 /// The supervisor's next command while the run waits on it; a schedule's timed command is
 /// waited for on the run's clock (a simulated one advances to it).
-fn wait_command(supervisor: &mut dyn Supervisor, clock: &dyn Clock, ctx: &mut Ctx) -> Event {
-    if let Some(NextPoll::In(d)) = supervisor.next_poll(clock.now()) {
+fn wait_command(
+    supervisor: &mut dyn Supervisor,
+    clock: &dyn Clock,
+    ctx: &mut Ctx,
+    attempts: usize,
+) -> Event {
+    let moment = Moment {
+        attempts,
+        now: clock.now(),
+        mid_step: false,
+        committed: false,
+    };
+    if let Some(NextPoll::In(d)) = supervisor.next_poll(&moment) {
         clock.sleep(d);
     }
     match supervisor.wait() {
@@ -590,7 +607,13 @@ impl Live<'_> {
 
 impl StepControl for Live<'_> {
     fn slice(&mut self) -> Option<Duration> {
-        match self.supervisor.next_poll(self.clock.now())? {
+        let moment = Moment {
+            attempts: self.attempts,
+            now: self.clock.now(),
+            mid_step: true,
+            committed: self.during.committed,
+        };
+        match self.supervisor.next_poll(&moment)? {
             NextPoll::In(d) => Some(d),
             // A person's command is waited for at most this much wall time: on a paced
             // simulated clock that much simulated time at its pace, unpaced the same.
@@ -610,6 +633,7 @@ impl StepControl for Live<'_> {
             attempts: self.attempts,
             now: self.clock.now(),
             mid_step: true,
+            committed: self.during.committed,
         };
         let Some(command) = self.supervisor.poll(&moment) else {
             return Control::Go;
@@ -638,7 +662,7 @@ impl StepControl for Live<'_> {
                 return Control::Stop;
             }
             paused = true;
-            let event = wait_command(self.supervisor, self.clock, self.ctx);
+            let event = wait_command(self.supervisor, self.clock, self.ctx, self.attempts);
             dispatch(self.machine, self.ctx, self.clock, hold, event);
         }
     }

@@ -112,6 +112,18 @@ pub struct Moment {
     /// Whether a step attempt is under way (asked between its motions, or during one), or
     /// the run is between steps (asked before the next attempt).
     pub mid_step: bool,
+    /// Mid-step: whether the step has passed its commit point.
+    pub committed: bool,
+}
+
+/// Where in a step attempt a scheduled command lands (model-checker paths replayed).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum InStep {
+    /// At the first chance in the attempt.
+    Start,
+    /// At the first chance once the step has passed its commit point.
+    Committed,
 }
 
 /// When a supervisor wants to be asked again while a step runs.
@@ -135,9 +147,10 @@ pub trait Supervisor {
     /// while one runs, between its motions and every [`Supervisor::next_poll`] during one.
     fn poll(&mut self, at: &Moment) -> Option<SupervisorCommand>;
 
-    /// When to ask again while a step runs (`None`: not before the step ends).
-    fn next_poll(&self, now: Duration) -> Option<NextPoll> {
-        let _ = now;
+    /// When to ask again while a step runs (`None`: not before the step ends, or its next
+    /// motion does); `at` is now.
+    fn next_poll(&self, at: &Moment) -> Option<NextPoll> {
+        let _ = at;
         None
     }
 
@@ -182,6 +195,10 @@ pub struct TimedCommand {
     /// middle of a step (and its motion) as well as between steps.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub at_s: Option<f64>,
+    /// Delivered in the middle of the attempt that `at` attempts started make (the `at`-th,
+    /// 1-based): at its start, or once it has committed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub in_step: Option<InStep>,
     /// The command.
     pub command: SupervisorCommand,
 }
@@ -192,6 +209,17 @@ impl TimedCommand {
         Self {
             at,
             at_s: None,
+            in_step: None,
+            command,
+        }
+    }
+
+    /// `command` in the middle of the `at`-th attempt (1-based), where `in_step` says.
+    pub fn in_attempt(at: usize, in_step: InStep, command: SupervisorCommand) -> Self {
+        Self {
+            at,
+            at_s: None,
+            in_step: Some(in_step),
             command,
         }
     }
@@ -201,6 +229,7 @@ impl TimedCommand {
         Self {
             at: 0,
             at_s: Some(at_s),
+            in_step: None,
             command,
         }
     }
@@ -231,8 +260,6 @@ pub struct ScriptedSupervisor {
     pub requests: Vec<InterventionRequest>,
     /// Every checkpoint reached, in order.
     pub checkpoints_reached: Vec<CheckpointRequest>,
-    /// Attempts started at the last poll.
-    attempts: usize,
 }
 
 impl ScriptedSupervisor {
@@ -247,7 +274,6 @@ impl ScriptedSupervisor {
             checkpoints: VecDeque::new(),
             requests: Vec::new(),
             checkpoints_reached: Vec::new(),
-            attempts: 0,
         }
     }
 
@@ -263,12 +289,13 @@ impl ScriptedSupervisor {
 
 impl Supervisor for ScriptedSupervisor {
     fn poll(&mut self, at: &Moment) -> Option<SupervisorCommand> {
-        self.attempts = at.attempts;
         let due = self.commands.front().is_some_and(|c| {
             c.at <= at.attempts
-                && match c.due() {
-                    Some(t) => t <= at.now,
-                    None => !at.mid_step,
+                && match (c.in_step, c.due()) {
+                    (Some(InStep::Start), _) => at.mid_step,
+                    (Some(InStep::Committed), _) => at.mid_step && at.committed,
+                    (None, Some(t)) => t <= at.now,
+                    (None, None) => !at.mid_step,
                 }
         });
         if due {
@@ -278,10 +305,19 @@ impl Supervisor for ScriptedSupervisor {
         }
     }
 
-    fn next_poll(&self, now: Duration) -> Option<NextPoll> {
+    fn next_poll(&self, at: &Moment) -> Option<NextPoll> {
         let c = self.commands.front()?;
-        let due = c.due()?;
-        (c.at <= self.attempts).then(|| NextPoll::In(due.saturating_sub(now)))
+        if c.at > at.attempts {
+            return None;
+        }
+        let now = at.now;
+        match c.in_step {
+            // At once: the first check of the attempt delivers it.
+            Some(InStep::Start) => Some(NextPoll::In(Duration::ZERO)),
+            // At the first check after the commit (a primitive checks after every motion).
+            Some(InStep::Committed) => None,
+            None => Some(NextPoll::In(c.due()?.saturating_sub(now))),
+        }
     }
 
     fn source(&self) -> &str {

@@ -238,3 +238,57 @@ fn a_state_of_each_kind_is_reached() {
     assert!(found.all_hold());
     assert!(found.edges.keys().any(|(from, _)| *from == "perceiving"));
 }
+
+#[test]
+fn a_path_with_commands_mid_step_replays_through_the_runner_state_for_state() {
+    use stateright::Model;
+    use stitch_engine::{EngineModel, SupervisorCommand::*, schedule_of, state_label};
+    let mut plan = script("stitch.rhai");
+    plan.throws.truncate(1);
+    let plan = Arc::new(plan);
+    let actions = [
+        Action::Interrupt(Pause, false),
+        Action::Command(Resume),
+        Action::Attempt(Scripted::Ok),
+        Action::Attempt(Scripted::Ok),
+        Action::Interrupt(TakeOver, true),
+        Action::Command(HandBack),
+        Action::Interrupt(TakeOver, false),
+        Action::Command(HandBack),
+        Action::Attempt(Scripted::Ok),
+        Action::Interrupt(Abort, true),
+    ];
+    let model = EngineModel::new(Arc::clone(&plan), ExploreOptions::default());
+    let mut state = model.init_states().remove(0);
+    let mut expected = vec![state_label(state.state())];
+    for a in actions {
+        state = model
+            .next_state(&state, a)
+            .unwrap_or_else(|| panic!("{a} is not a choice in {}", state_label(state.state())));
+        expected.push(state_label(state.state()));
+    }
+    assert!(state.world.violations == 0, "{:?}", state.world);
+    assert_eq!(
+        expected.last().map(String::as_str),
+        Some("aborted(t1 s5 r0)"),
+        "{expected:?}"
+    );
+    let (report, calls) = replay(&plan, schedule_of(actions));
+    let seen: Vec<String> = report
+        .journal
+        .records()
+        .iter()
+        .filter_map(|r| match &r.entry {
+            stitch_engine::Entry::Transition { to, .. } => Some(to.clone()),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(seen, expected);
+    // insert (paused, resumed, done), sweep, extract (taken over past its commit: the
+    // surgeon finishes it), cinch (taken over before it: run again), cinch, handover
+    // (aborted past its commit).
+    assert_eq!(
+        calls,
+        vec!["insert", "sweep", "extract", "cinch", "cinch", "handover"]
+    );
+}

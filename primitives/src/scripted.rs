@@ -221,8 +221,11 @@ pub struct Call {
     pub primitive: &'static str,
     /// The attempt number the engine gave.
     pub attempt: u32,
-    /// The token that decided the outcome.
+    /// The token that decided the outcome (drawn when the attempt ends; `ok` for one the
+    /// supervisor interrupted, which drew none).
     pub token: Scripted,
+    /// Whether the supervisor ended the attempt before its outcome.
+    pub interrupted: bool,
 }
 
 /// Scripted primitives: outcomes from a schedule or a seeded distribution.
@@ -289,18 +292,29 @@ impl ScriptedPrimitives {
         }
     }
 
-    fn next(&mut self, name: &str) -> (Scripted, f64) {
+    /// How long the next attempt at `name` takes, s.
+    fn duration(&mut self, name: &str) -> f64 {
         match &mut self.source {
-            Source::Schedule(queue) => {
-                let nominal = OutcomeModel::default().duration_for(name);
-                (queue.pop_front().unwrap_or(Scripted::Ok), nominal)
-            }
+            Source::Schedule(_) => OutcomeModel::default().duration_for(name),
             Source::Seeded(seeded) => {
                 let Seeded {
-                    model,
-                    outcomes,
-                    durations,
-                    ..
+                    model, durations, ..
+                } = &mut **seeded;
+                let spread = model.duration_spread.clamp(0.0, 0.9);
+                let factor = 1.0 + spread * (2.0 * durations.random::<f64>() - 1.0);
+                model.duration_for(name) * factor
+            }
+        }
+    }
+
+    /// How the attempt at `name` ends: drawn (or taken from the schedule) when it ends, so an
+    /// attempt the supervisor interrupts uses none.
+    fn token(&mut self, name: &str) -> Scripted {
+        match &mut self.source {
+            Source::Schedule(queue) => queue.pop_front().unwrap_or(Scripted::Ok),
+            Source::Seeded(seeded) => {
+                let Seeded {
+                    model, outcomes, ..
                 } = &mut **seeded;
                 let weights = model.weights_for(name);
                 let total: f64 = weights.iter().sum();
@@ -313,9 +327,7 @@ impl ScriptedPrimitives {
                     }
                     x -= w;
                 }
-                let spread = model.duration_spread.clamp(0.0, 0.9);
-                let factor = 1.0 + spread * (2.0 * durations.random::<f64>() - 1.0);
-                (token, model.duration_for(name) * factor)
+                token
             }
         }
     }
@@ -327,13 +339,14 @@ impl Primitives for ScriptedPrimitives {
     /// the step has a commit point (insert, extract, cinch, handover).
     fn run(&mut self, req: &StepRequest<'_>, control: &mut dyn StepControl) -> StepOutcome {
         let name = req.kind.name();
-        let (token, duration_s) = self.next(name);
+        let duration_s = self.duration(name);
         self.calls.push(Call {
             throw: req.throw,
             step: req.step,
             primitive: name,
             attempt: req.attempt,
-            token,
+            token: Scripted::Ok,
+            interrupted: false,
         });
         let total = Duration::from_secs_f64(duration_s.max(0.0));
         let commits = matches!(
@@ -355,16 +368,27 @@ impl Primitives for ScriptedPrimitives {
             let slice = control.slice().map_or(left, |s| s.min(left));
             self.clock.sleep(slice);
             done += slice;
+            if commits && !committed && done >= total / 2 {
+                committed = true;
+                control.commit();
+            }
             let mut hold = || {
                 holds.push(calls);
                 Ok(())
             };
             if control.check(&mut hold) == Control::Stop {
+                if let Some(c) = self.calls.last_mut() {
+                    c.interrupted = true;
+                }
                 return StepOutcome::Interrupted {
                     committed,
                     measured: Measurements::default(),
                 };
             }
+        }
+        let token = self.token(name);
+        if let Some(c) = self.calls.last_mut() {
+            c.token = token;
         }
         token.outcome_for(req.kind, req.throw + 1)
     }
