@@ -2,6 +2,7 @@
 #![allow(clippy::print_stdout)] // a command-line tool prints its results
 
 #[cfg(feature = "ros2")]
+mod bench_supervision;
 mod console;
 mod mock;
 mod perceive;
@@ -27,7 +28,7 @@ use stitch_engine::{
     ScriptLimits, ScriptedSupervisor, TimedCommand, explore, mermaid, validate,
 };
 use stitch_primitives::{
-    MockPerception, OutcomeModel, ScriptedPrimitives, mock_primitives_observed,
+    MockPerception, OutcomeModel, RobotPrimitives, ScriptedPrimitives, mock_primitives_observed,
 };
 use stitch_recorder::Recorder;
 use stitch_robot::{SimClock, Wound, WoundSpec};
@@ -316,6 +317,7 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
         Command::Bench { command } => match command {
             #[cfg(feature = "ros2")]
             perceive::BenchCommand::Ros2(args) => ros2::bench(args),
+            perceive::BenchCommand::Supervision(args) => bench_supervision::bench(args),
             other => perceive::bench(other),
         },
         Command::Trials(args) => trials::trials(args),
@@ -445,6 +447,7 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
                     .transpose()?
                     .unwrap_or_default(),
                 live: !json,
+                ..Supervision::default()
             };
             let mut mock = read_mock_config(mock_config.as_deref())?;
             mock.scene.wound = wound.apply(mock.scene.wound.clone());
@@ -598,7 +601,7 @@ struct Ros2Run<'a> {
 }
 
 /// How a run is supervised and shown, beyond its robot.
-#[derive(Debug, Default)]
+#[derive(Default)]
 pub(crate) struct Supervision {
     /// The simulated clock's pace (`--pace`); `None`: as fast as it can.
     pub pace: Option<f64>,
@@ -606,6 +609,27 @@ pub(crate) struct Supervision {
     pub commands: Vec<TimedCommand>,
     /// Print each step as it ends, on standard error.
     pub live: bool,
+    /// Commands given live from another thread (`stitch bench supervision`), instead of
+    /// `commands`; taken by the run.
+    pub feed:
+        std::cell::RefCell<Option<std::sync::mpsc::Receiver<stitch_engine::SupervisorCommand>>>,
+    /// A journal sink for a run without a recorder (a benchmark's clock on the journal).
+    pub sink: std::cell::RefCell<Option<stitch_engine::JournalSink>>,
+    /// Wraps the rig's arms and jaws before the run (a benchmark's watch on the holds).
+    #[allow(clippy::type_complexity)]
+    pub rig: std::cell::RefCell<
+        Option<Box<dyn FnOnce(stitch_primitives::Rig) -> stitch_primitives::Rig>>,
+    >,
+}
+
+impl std::fmt::Debug for Supervision {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Supervision")
+            .field("pace", &self.pace)
+            .field("commands", &self.commands)
+            .field("live", &self.live)
+            .finish_non_exhaustive()
+    }
 }
 
 impl Supervision {
@@ -614,8 +638,30 @@ impl Supervision {
         self.pace.map_or_else(SimClock::new, SimClock::paced)
     }
 
-    /// `runner`, printing each step as it ends where asked.
+    /// `primitives` with the rig wrapped, where asked.
+    pub fn rig(&self, primitives: RobotPrimitives) -> RobotPrimitives {
+        match self.rig.borrow_mut().take() {
+            Some(f) => primitives.map_rig(f),
+            None => primitives,
+        }
+    }
+
+    /// The simulated surgeon `supervisor`, given this run's commands.
+    pub fn supervise(&self, supervisor: mock::MockSupervisor) -> mock::MockSupervisor {
+        match self.feed.borrow_mut().take() {
+            Some(feed) => supervisor.fed(feed),
+            None if !self.commands.is_empty() => supervisor.commanding(self.commands.clone()),
+            None => supervisor,
+        }
+    }
+
+    /// `runner`, printing each step as it ends where asked, its journal streamed to the sink
+    /// where one was given.
     pub fn show<'a>(&self, runner: Runner<'a>) -> Runner<'a> {
+        let runner = match self.sink.borrow_mut().take() {
+            Some(sink) => runner.streaming(Some(sink)),
+            None => runner,
+        };
         if self.live {
             runner.on_attempt(Box::new(|throw, a| {
                 eprintln!("{}", show::attempt_line(throw, a));
@@ -765,7 +811,7 @@ pub(crate) fn run_mock(
     let (primitives, world) =
         mock_primitives_observed(scene, perception, seed, clock.clone(), frames)
             .context("invalid mock configuration")?;
-    let mut primitives = match tap {
+    let primitives = match tap {
         Some(tap) => {
             let truth = world.clone();
             primitives.map_rig(|rig| {
@@ -774,11 +820,9 @@ pub(crate) fn run_mock(
         }
         None => primitives,
     };
+    let mut primitives = supervision.rig(primitives);
     let plan = Arc::new(loaded.plan.clone());
-    let mut supervisor = mock::MockSupervisor::new(world, Arc::clone(&plan));
-    if !supervision.commands.is_empty() {
-        supervisor = supervisor.commanding(supervision.commands.clone());
-    }
+    let mut supervisor = supervision.supervise(mock::MockSupervisor::new(world, Arc::clone(&plan)));
     let runner = Runner::new(
         plan,
         &mut primitives,

@@ -1,9 +1,10 @@
 //! The supervising surgeon's stand-in on the mock dVRK.
 
 use std::sync::Arc;
+use std::sync::mpsc::Receiver;
 use stitch_engine::{
-    CheckpointRequest, InterventionRequest, InterventionResult, Moment, NeedleHolder, NextPoll,
-    Plan, ScriptedSupervisor, Supervisor, SupervisorCommand, TimedCommand,
+    CheckpointRequest, InterventionRequest, InterventionResult, LIVE_POLL, Moment, NeedleHolder,
+    NextPoll, Plan, ScriptedSupervisor, Supervisor, SupervisorCommand, TimedCommand,
 };
 use stitch_primitives::StepKind;
 use stitch_sim::{MockDvrk, NeedlePlace};
@@ -22,6 +23,8 @@ pub struct MockSupervisor {
     plan: Arc<Plan>,
     commands: ScriptedSupervisor,
     source: &'static str,
+    /// Commands given live, from another thread (a benchmark's, a console's).
+    feed: Option<Receiver<SupervisorCommand>>,
 }
 
 impl std::fmt::Debug for MockSupervisor {
@@ -49,7 +52,16 @@ impl MockSupervisor {
             plan,
             commands: ScriptedSupervisor::default(),
             source: "mock",
+            feed: None,
         }
+    }
+
+    /// The same, giving the commands that come through `feed` as they come (asked every
+    /// [`LIVE_POLL`] while a step moves).
+    pub fn fed(mut self, feed: Receiver<SupervisorCommand>) -> Self {
+        self.feed = Some(feed);
+        self.source = "live";
+        self
     }
 
     /// The same, giving `commands` (a `--commands` schedule).
@@ -62,11 +74,17 @@ impl MockSupervisor {
 
 impl Supervisor for MockSupervisor {
     fn poll(&mut self, at: &Moment) -> Option<SupervisorCommand> {
-        self.commands.poll(at)
+        match &self.feed {
+            Some(feed) => feed.try_recv().ok(),
+            None => self.commands.poll(at),
+        }
     }
 
     fn next_poll(&self, at: &Moment) -> Option<NextPoll> {
-        self.commands.next_poll(at)
+        match &self.feed {
+            Some(_) => Some(NextPoll::Every(LIVE_POLL)),
+            None => self.commands.next_poll(at),
+        }
     }
 
     fn source(&self) -> &str {
@@ -75,7 +93,10 @@ impl Supervisor for MockSupervisor {
 
     /// The next scheduled command, if any; with none left, the run aborts.
     fn wait(&mut self) -> Option<SupervisorCommand> {
-        self.commands.wait()
+        match &self.feed {
+            Some(feed) => feed.recv().ok(),
+            None => self.commands.wait(),
+        }
     }
 
     /// The simulated supervisor confirms every checkpoint.

@@ -202,6 +202,10 @@ pub enum BenchCommand {
         #[arg(long)]
         json: bool,
     },
+    /// A supervisor's command to both arms' hold, while an arm moves: median and p99, on the
+    /// mock at --pace 1.0 in process and (--ros2) over ROS 2 against a sim-node in this
+    /// process (docs/cli.md).
+    Supervision(crate::bench_supervision::BenchSupervisionArgs),
     /// `servo_cp` streamed over ROS 2 (real DDS on loopback) to a sim-node in this process:
     /// one-way latency at 1 kHz against a 100 Hz baseline.
     #[cfg(feature = "ros2")]

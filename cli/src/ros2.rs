@@ -361,17 +361,17 @@ pub fn run_ros2(
         &sensing,
         seed,
     )?;
-    let mut primitives = RobotPrimitives::new(tapped(rig, tap, &dvrk));
+    let mut primitives = supervision.rig(RobotPrimitives::new(tapped(rig, tap, &dvrk)));
     let plan = Arc::new(loaded.plan.clone());
     let (o, d) = (Arc::clone(&oracle), Arc::clone(&dvrk));
-    let mut supervisor = crate::mock::MockSupervisor::with(
+    let supervisor = crate::mock::MockSupervisor::with(
         Box::new(move |needs| {
             o.call(Call::Recover { needs })?;
             d.wait_fresh(timeout).map_err(|e| e.to_string())
         }),
         Arc::clone(&plan),
-    )
-    .commanding(supervision.commands.clone());
+    );
+    let mut supervisor = supervision.supervise(supervisor);
     let runner = Runner::new(plan, &mut primitives, &mut supervisor, clock, Some(seed))
         .streaming(recorder.map(Recorder::sink));
     Ok(supervision.show(runner).run())

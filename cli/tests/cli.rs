@@ -291,3 +291,151 @@ fn on_the_mock_the_supervisor_recovers_and_the_failed_step_runs_again() {
         "{s}"
     );
 }
+
+#[test]
+fn commands_at_simulated_times_land_mid_step_and_the_timeline_prints_as_the_run_goes() {
+    let commands = tmp("commands.json");
+    std::fs::write(
+        &commands,
+        r#"[{"at_s": 5.0, "command": "pause"}, {"at_s": 8.0, "command": "resume"},
+            {"at_s": 30.0, "command": "abort"}]"#,
+    )
+    .expect("commands");
+    let journal = tmp("commands.jsonl");
+    let started = std::time::Instant::now();
+    let out = stitch(&[
+        "run",
+        "scripts/stitch.rhai",
+        "--commands",
+        commands.to_str().expect("utf-8"),
+        "--pace",
+        "100",
+        "--journal",
+        journal.to_str().expect("utf-8"),
+    ]);
+    // 30 simulated seconds at 100 times the wall clock's speed: at least 0.3 s.
+    assert!(started.elapsed() >= std::time::Duration::from_millis(300));
+    assert_eq!(out.status.code(), Some(5), "{}", text(&out.stderr));
+    let (stdout, stderr) = (text(&out.stdout), text(&out.stderr));
+    assert!(stdout.contains("INTERRUPTED by the supervisor"), "{stdout}");
+    // Each step's line, printed on standard error as it ended.
+    assert!(stderr.contains("throw 1     0.0 s  insert"), "{stderr}");
+    assert!(stderr.contains("INTERRUPTED"), "{stderr}");
+    let journal = std::fs::read_to_string(&journal).expect("journal");
+    let pause = journal
+        .lines()
+        .find(|l| l.contains(r#""command":"pause""#))
+        .expect("the pause is journaled");
+    assert!(
+        pause.contains(r#""t_s":5.0"#) && pause.contains(r#""during":{"throw":0,"step":0"#),
+        "{pause}"
+    );
+    assert!(
+        journal.contains(r#""state":"paused(t1 s1 r0 mid-step)""#),
+        "{journal}"
+    );
+}
+
+#[test]
+fn a_recorded_run_with_commands_replays_identically() {
+    let commands = tmp("replay-commands.json");
+    std::fs::write(
+        &commands,
+        r#"[{"at_s": 20.0, "command": "take-over"}, {"at_s": 26.0, "command": "hand-back"},
+            {"at_s": 90.0, "command": "e-stop"}]"#,
+    )
+    .expect("commands");
+    let mcap = tmp("replay-commands.mcap");
+    let out = stitch(&[
+        "run",
+        "scripts/stitch_human.rhai",
+        "--commands",
+        commands.to_str().expect("utf-8"),
+        "--journal",
+        mcap.to_str().expect("utf-8"),
+    ]);
+    assert_eq!(out.status.code(), Some(5), "{}", text(&out.stderr));
+    let out = stitch(&["replay", mcap.to_str().expect("utf-8")]);
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}{}",
+        text(&out.stdout),
+        text(&out.stderr)
+    );
+    assert!(
+        text(&out.stdout).starts_with("identical"),
+        "{}",
+        text(&out.stdout)
+    );
+}
+
+#[test]
+fn bad_commands_and_paces_are_refused_with_the_reason() {
+    let bad = tmp("bad-commands.json");
+    std::fs::write(&bad, "[{\"at_s\": 1.0,\n \"command\": \"halt\"}]").expect("file");
+    let out = stitch(&[
+        "run",
+        "scripts/stitch.rhai",
+        "--commands",
+        bad.to_str().expect("utf-8"),
+    ]);
+    assert_eq!(out.status.code(), Some(1));
+    let err = text(&out.stderr);
+    assert!(
+        err.contains("bad-commands.json:2:") && err.contains("halt"),
+        "{err}"
+    );
+    let negative = tmp("negative-commands.json");
+    std::fs::write(&negative, r#"[{"at_s": -1.0, "command": "pause"}]"#).expect("file");
+    let out = stitch(&[
+        "run",
+        "scripts/stitch.rhai",
+        "--commands",
+        negative.to_str().expect("utf-8"),
+    ]);
+    assert!(
+        text(&out.stderr).contains("at_s must be a time ≥ 0 s"),
+        "{}",
+        text(&out.stderr)
+    );
+    let out = stitch(&["run", "scripts/stitch.rhai", "--pace", "0"]);
+    assert!(
+        text(&out.stderr).contains("--pace 0: expected a positive number"),
+        "{}",
+        text(&out.stderr)
+    );
+    let out = stitch(&[
+        "run",
+        "scripts/stitch.rhai",
+        "--robot",
+        "ros2",
+        "--pace",
+        "1",
+    ]);
+    assert!(
+        text(&out.stderr).contains("over ROS 2 the clock is the wall's"),
+        "{}",
+        text(&out.stderr)
+    );
+}
+
+#[test]
+fn the_supervision_benchmark_measures_pauses_during_motions() {
+    let out = stitch(&["bench", "supervision", "--commands", "8", "--json"]);
+    assert_eq!(out.status.code(), Some(0), "{}", text(&out.stderr));
+    let rows: serde_json::Value = serde_json::from_slice(&out.stdout).expect("json");
+    let mock = &rows[0];
+    assert_eq!(mock["sent"], 8);
+    assert!(
+        mock["during_motion"].as_u64().is_some_and(|n| n > 0),
+        "{mock}"
+    );
+    // A bound that holds on any machine; the benchmark's own numbers go in the docs.
+    assert!(
+        mock["p99_ms"]
+            .as_f64()
+            .is_some_and(|ms| ms > 0.0 && ms < 1000.0),
+        "{mock}"
+    );
+}

@@ -591,3 +591,49 @@ fn bad_ros2_settings_are_refused_with_the_reason() {
     assert_eq!(ran.code, Some(1), "{}", ran.out);
     assert!(ran.out.contains("0 to 232"), "{}", ran.out);
 }
+
+#[test]
+fn an_abort_mid_move_reaches_the_sim_nodes_arms_and_nothing_moves_after() {
+    let _one = serial();
+    let d = domain(14);
+    // Motions at wall-clock speed, as on a dVRK: the insertion moves for seconds.
+    let node = SimNode::start(&d, &["--time-scale", "1"]);
+    let commands = tmp("abort-mid-move.json");
+    std::fs::write(&commands, r#"[{"at_s": 4.0, "command": "abort"}]"#).expect("commands");
+    let journal = tmp("abort-mid-move.jsonl");
+    let ran = run(
+        &[
+            "scripts/stitch.rhai",
+            "--robot",
+            "ros2",
+            "--domain-id",
+            &d,
+            "--commands",
+            commands.to_str().expect("utf-8"),
+        ],
+        &journal,
+        Duration::from_secs(60),
+    );
+    assert_eq!(ran.code, Some(5), "{}\nsim-node:\n{}", ran.out, node.log());
+    let abort = ran
+        .journal
+        .lines()
+        .find(|l| l.contains(r#""command":"abort""#))
+        .unwrap_or_else(|| panic!("no abort in the journal:\n{}", ran.journal));
+    assert!(
+        abort.contains(r#""during":{"#) && abort.contains(r#""from":"schedule""#),
+        "the abort landed mid-step, from the schedule: {abort}"
+    );
+    held_both(&node);
+    let log = node.log();
+    let held = log
+        .lines()
+        .position(|l| l.starts_with("sim-node: hold /") && l.contains("during motion"))
+        .unwrap_or_else(|| panic!("no hold reached an arm mid-move:\n{log}"));
+    let after: Vec<&str> = log
+        .lines()
+        .skip(held)
+        .filter(|l| l.starts_with("sim-node: motion "))
+        .collect();
+    assert!(after.is_empty(), "motion after the abort: {after:?}\n{log}");
+}
