@@ -307,11 +307,18 @@ pub fn timeline_of(run: &Rebuilt, source: &str, robot: &str, clock: &str) -> Str
                 .map(|r| format!(": {}", r.label()))
                 .unwrap_or_default()
         ),
-        Some(RunOutcome::Aborted { by, throw, step }) => format!(
-            "aborted ({by:?}) before throw {} step {}; arms held",
-            throw + 1,
-            step + 1
-        ),
+        Some(RunOutcome::Aborted { by, throw, step }) => {
+            // Mid-step, the step's last attempt was interrupted.
+            let during = run.throws.get(*throw).and_then(|t| t.attempts.last()).is_some_and(
+                |a| a.step == *step && matches!(a.outcome, StepOutcome::Interrupted { .. }),
+            );
+            format!(
+                "aborted ({by:?}) {} throw {} step {}; arms held",
+                if during { "during" } else { "before" },
+                throw + 1,
+                step + 1
+            )
+        }
     };
     let _ = writeln!(s, "outcome: {outcome}");
     let _ = writeln!(

@@ -52,6 +52,10 @@ pub struct TrialsArgs {
     /// (JPEG) at most this often, Hz; 0 (the default): none.
     #[arg(long, default_value_t = 0.0, value_name = "HZ")]
     record_frames: f64,
+    /// The simulated surgeon's commands in every trial (JSON, as `stitch run --commands`):
+    /// at simulated times, mid-step included. Without it, none (the paper's trials).
+    #[arg(long, value_name = "FILE")]
+    commands: Option<PathBuf>,
 }
 
 /// How `stitch trials` writes each trial's journal.
@@ -128,6 +132,10 @@ pub fn trials(args: TrialsArgs) -> anyhow::Result<u8> {
         anyhow::bail!("--policies names no policy");
     }
     let mock = crate::read_mock_config(args.mock_config.as_deref())?;
+    // Read once, refused before any trial runs.
+    if let Some(path) = &args.commands {
+        crate::read_commands(path)?;
+    }
     let mut policies = Vec::new();
     for key in &args.policies {
         let path = if key.ends_with(".rhai") {
@@ -277,7 +285,7 @@ fn trial(
                 robot: RobotKind::Mock.name(),
                 mock_config: args.mock_config.as_deref(),
                 outcomes: None,
-                commands: None,
+                commands: args.commands.as_deref(),
                 perception: args.perception.name(),
                 segmenter: &crate::segmenter::SegmenterChoice::Classical,
                 wound: &mock.scene.wound,
@@ -294,7 +302,15 @@ fn trial(
         perception.clone(),
         seed,
         recorder.as_ref(),
-        &crate::Supervision::default(),
+        &crate::Supervision {
+            commands: args
+                .commands
+                .as_deref()
+                .map(crate::read_commands)
+                .transpose()?
+                .unwrap_or_default(),
+            ..crate::Supervision::default()
+        },
     )?;
     let record = TrialRecord::from_report(&policy.name, seed, &policy.loaded.plan, &report);
     match recorder {
