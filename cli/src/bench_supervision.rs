@@ -364,10 +364,12 @@ fn ros2_row(
                 &mock.scene,
                 MockPerception::Model(SensingConfig::default()),
                 args.seed,
-                &ros,
-                &config,
-                None,
-                s,
+                crate::ros2::Connection {
+                    ros: &ros,
+                    config: &config,
+                    recorder: None,
+                    supervision: s,
+                },
             )
         },
         Some(reached),

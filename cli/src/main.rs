@@ -1,7 +1,6 @@
 //! `stitch`: check and run suture plans.
 #![allow(clippy::print_stdout)] // a command-line tool prints its results
 
-#[cfg(feature = "ros2")]
 mod bench_supervision;
 mod console;
 mod mock;
@@ -711,28 +710,16 @@ fn run_ros2(
             .map_err(|e| anyhow::anyhow!("--domain-id {d}: {e}"))?,
         None => stitch_dvrk::ros2::Ros2Options::from_env().map_err(anyhow::Error::msg)?,
     };
+    let connection = ros2::Connection {
+        ros: &ros,
+        config: &config,
+        recorder: on.recorder,
+        supervision: on.supervision,
+    };
     if on.simulator {
-        ros2::run_ros2(
-            loaded,
-            scene,
-            perception,
-            seed,
-            &ros,
-            &config,
-            on.recorder,
-            on.supervision,
-        )
+        ros2::run_ros2(loaded, scene, perception, seed, connection)
     } else {
-        ros2::run_real(
-            loaded,
-            scene,
-            perception,
-            seed,
-            &ros,
-            &config,
-            on.recorder,
-            on.supervision,
-        )
+        ros2::run_real(loaded, scene, perception, seed, connection)
     }
 }
 

@@ -282,6 +282,19 @@ fn sim_camera(
     Ok((camera, pipeline))
 }
 
+/// Where and how a run over ROS 2 connects, records and is supervised.
+#[derive(Debug, Clone, Copy)]
+pub struct Connection<'a> {
+    /// The ROS 2 domain and transport.
+    pub ros: &'a Ros2Options,
+    /// The dVRK backend's settings.
+    pub config: &'a DvrkConfig,
+    /// The flight recorder, if the run is recorded.
+    pub recorder: Option<&'a Recorder>,
+    /// Commands and the live timeline.
+    pub supervision: &'a crate::Supervision,
+}
+
 /// Run `loaded` over ROS 2: connect to the dVRK's arms, and to the simulator's side channel
 /// for the observer, the supervisor's recovery motion and, with the noise model, the
 /// estimator; with `--perception pipeline`, to the stereo camera's topics.
@@ -290,11 +303,14 @@ pub fn run_ros2(
     scene: &SceneConfig,
     perception: MockPerception,
     seed: u64,
-    ros: &Ros2Options,
-    config: &DvrkConfig,
-    recorder: Option<&Recorder>,
-    supervision: &crate::Supervision,
+    on: Connection<'_>,
 ) -> anyhow::Result<Report> {
+    let Connection {
+        ros,
+        config,
+        recorder,
+        supervision,
+    } = on;
     let timeout = Duration::from_secs_f64(config.connect_timeout_s);
     let oracle = Oracle::connect(ros, timeout).map_err(|e| {
         anyhow::anyhow!(
@@ -449,11 +465,14 @@ pub fn run_real(
     scene: &SceneConfig,
     perception: MockPerception,
     seed: u64,
-    ros: &Ros2Options,
-    config: &DvrkConfig,
-    recorder: Option<&Recorder>,
-    supervision: &crate::Supervision,
+    on: Connection<'_>,
 ) -> anyhow::Result<Report> {
+    let Connection {
+        ros,
+        config,
+        recorder,
+        supervision,
+    } = on;
     let MockPerception::Pipeline(_, segmenter) = perception else {
         anyhow::bail!(
             "--no-simulator: a real dVRK has no noise model to estimate the needle with; add \

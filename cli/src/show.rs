@@ -309,9 +309,13 @@ pub fn timeline_of(run: &Rebuilt, source: &str, robot: &str, clock: &str) -> Str
         ),
         Some(RunOutcome::Aborted { by, throw, step }) => {
             // Mid-step, the step's last attempt was interrupted.
-            let during = run.throws.get(*throw).and_then(|t| t.attempts.last()).is_some_and(
-                |a| a.step == *step && matches!(a.outcome, StepOutcome::Interrupted { .. }),
-            );
+            let during = run
+                .throws
+                .get(*throw)
+                .and_then(|t| t.attempts.last())
+                .is_some_and(|a| {
+                    a.step == *step && matches!(a.outcome, StepOutcome::Interrupted { .. })
+                });
             format!(
                 "aborted ({by:?}) {} throw {} step {}; arms held",
                 if during { "during" } else { "before" },

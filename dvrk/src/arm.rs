@@ -1148,9 +1148,12 @@ impl Motion {
 #[derive(Debug)]
 struct Watched {
     motion: Arc<Motion>,
-    result: Arc<(Mutex<Option<Result<(), RobotError>>>, Condvar)>,
+    result: Arc<Verdict>,
     started: std::sync::Once,
 }
+
+/// A motion's verdict, once its check has run, and a signal for those waiting on it.
+type Verdict = (Mutex<Option<Result<(), RobotError>>>, Condvar);
 
 impl Watched {
     fn new(motion: Motion) -> Self {

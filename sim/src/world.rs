@@ -1141,8 +1141,7 @@ mod tests {
         let start = arm.setpoint_cp().expect("pose");
         let needle_before = w.needle_truth().pose;
         let _ = w.take_tip_path();
-        let _ = arm
-            .move_cp(&moved(&start, Vector::new(0.0, 0.02, 0.0)))
+        arm.move_cp(&moved(&start, Vector::new(0.0, 0.02, 0.0)))
             .expect("moves")
             .wait(Duration::MAX)
             .expect("ends");
@@ -1166,8 +1165,7 @@ mod tests {
             start.translation,
             UnitQuaternion::from_euler_angles(0.0, 0.0, 0.25),
         );
-        let _ = arm
-            .move_cp(&goal)
+        arm.move_cp(&goal)
             .expect("turns")
             .wait(Duration::MAX)
             .expect("ends");
@@ -1184,25 +1182,21 @@ mod tests {
     fn a_jaw_closing_across_the_wire_grasps_and_one_beside_it_does_not() {
         let w = world(1, 0.0);
         let (left, jaw) = (w.arm(Side::Left), w.jaw(Side::Left));
-        let _ = jaw
-            .open()
+        jaw.open()
             .expect("opens")
             .wait(Duration::MAX)
             .expect("ends");
-        let _ = left
-            .move_cp(&left_across(&w, 0.5, Vector::new(0.0, 0.0, 0.001)))
+        left.move_cp(&left_across(&w, 0.5, Vector::new(0.0, 0.0, 0.001)))
             .expect("moves")
             .wait(Duration::MAX)
             .expect("ends");
-        let _ = jaw
-            .close()
+        jaw.close()
             .expect("closes")
             .wait(Duration::MAX)
             .expect("ends");
         assert!(w.needle_truth().held_by(Side::Left));
         // The right lets go: the left keeps it, nothing falls.
-        let _ = w
-            .jaw(Side::Right)
+        w.jaw(Side::Right)
             .move_jp(JAW_OPEN_RAD)
             .expect("opens")
             .wait(Duration::MAX)
@@ -1211,8 +1205,7 @@ mod tests {
         assert!(t.held_by(Side::Left) && !t.held_by(Side::Right) && !t.dropped);
 
         let w = world(1, 0.0);
-        let _ = w
-            .jaw(Side::Left)
+        w.jaw(Side::Left)
             .open()
             .expect("opens")
             .wait(Duration::MAX)
@@ -1220,14 +1213,12 @@ mod tests {
         let n = w.needle_truth().pose;
         // 4 mm out of the needle's plane, beyond the blades' reach.
         let off = n * Vector::new(0.0, 0.0, 0.004 + JAW_LENGTH_M);
-        let _ = w
-            .arm(Side::Left)
+        w.arm(Side::Left)
             .move_cp(&left_across(&w, 0.5, off))
             .expect("moves")
             .wait(Duration::MAX)
             .expect("ends");
-        let _ = w
-            .jaw(Side::Left)
+        w.jaw(Side::Left)
             .close()
             .expect("closes")
             .wait(Duration::MAX)
@@ -1258,20 +1249,17 @@ mod tests {
     fn each_grasp_perturbs_the_needle_by_the_seeded_stream() {
         let grasp_after = |seed| {
             let w = world(seed, 0.001);
-            let _ = w
-                .jaw(Side::Left)
+            w.jaw(Side::Left)
                 .open()
                 .expect("opens")
                 .wait(Duration::MAX)
                 .expect("ends");
-            let _ = w
-                .arm(Side::Left)
+            w.arm(Side::Left)
                 .move_cp(&left_across(&w, 0.5, Vector::zeros()))
                 .expect("moves")
                 .wait(Duration::MAX)
                 .expect("ends");
-            let _ = w
-                .jaw(Side::Left)
+            w.jaw(Side::Left)
                 .close()
                 .expect("closes")
                 .wait(Duration::MAX)
@@ -1285,8 +1273,7 @@ mod tests {
     #[test]
     fn a_needle_let_go_in_the_air_falls_and_one_let_go_in_tissue_stays() {
         let w = world(1, 0.0);
-        let _ = w
-            .jaw(Side::Right)
+        w.jaw(Side::Right)
             .open()
             .expect("opens")
             .wait(Duration::MAX)
@@ -1301,14 +1288,12 @@ mod tests {
             UnitQuaternion::from_rotation_matrix(&r),
         );
         let grasp = w.needle_truth().grips[0].expect("held");
-        let _ = w
-            .arm(Side::Right)
+        w.arm(Side::Right)
             .move_cp(&(wanted * grasp.inverse()))
             .expect("moves")
             .wait(Duration::MAX)
             .expect("ends");
-        let _ = w
-            .jaw(Side::Right)
+        w.jaw(Side::Right)
             .open()
             .expect("opens")
             .wait(Duration::MAX)
