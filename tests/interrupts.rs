@@ -159,6 +159,25 @@ fn run(commands: Vec<TimedCommand>, seed: u64) -> Ran {
 /// into the longest move it commands (more than 5 mm at at most 2 cm/s: at least 0.25 s
 /// long) at least 0.1 s before the attempt ends. Also the attempt's step index.
 fn moments(base: &Ran) -> Vec<(&'static str, usize, f64)> {
+    moments_by(base, |x, y| x.distance_m.total_cmp(&y.distance_m))
+}
+
+/// As [`moments`], 50 ms into the first move of more than 5 mm each primitive commands
+/// (for most, before their commit point; [`moments`] finds most past it).
+fn first_moments(base: &Ran) -> Vec<(&'static str, usize, f64)> {
+    moments_by(base, |x, y| y.t_s.total_cmp(&x.t_s))
+}
+
+/// As [`moments`], 50 ms into the last move of more than 5 mm each primitive commands (for
+/// those with a commit point, past it).
+fn last_moments(base: &Ran) -> Vec<(&'static str, usize, f64)> {
+    moments_by(base, |x, y| x.t_s.total_cmp(&y.t_s))
+}
+
+fn moments_by(
+    base: &Ran,
+    pick: impl Fn(&&Told, &&Told) -> std::cmp::Ordering,
+) -> Vec<(&'static str, usize, f64)> {
     let throw = &base.report.throws[0];
     ["insert", "sweep", "extract", "cinch", "handover", "correct"]
         .into_iter()
@@ -172,8 +191,13 @@ fn moments(base: &Ran) -> Vec<(&'static str, usize, f64)> {
             let longest = base
                 .told
                 .iter()
-                .filter(|e| e.what == "move" && us(e.t_s) >= us(t0) && us(e.t_s) < us(t1) - 100_000)
-                .max_by(|x, y| x.distance_m.total_cmp(&y.distance_m))
+                .filter(|e| {
+                    e.what == "move"
+                        && e.distance_m > 0.005
+                        && us(e.t_s) >= us(t0)
+                        && us(e.t_s) < us(t1) - 100_000
+                })
+                .max_by(&pick)
                 .unwrap_or_else(|| panic!("{name} moves an arm"));
             assert!(
                 longest.distance_m > 0.005,
@@ -253,7 +277,8 @@ fn first_outcome(r: &Ran, step: usize) -> StepOutcome {
 fn abort_and_e_stop_mid_motion_hold_the_arms_at_once_and_nothing_moves_after() {
     let base = run(Vec::new(), 3);
     assert_eq!(base.report.outcome, RunOutcome::Completed);
-    for (name, step, t) in moments(&base) {
+    let all = [moments(&base), first_moments(&base), last_moments(&base)];
+    for (name, step, t) in all.into_iter().flatten() {
         for (command, cause) in [
             (SupervisorCommand::Abort, AbortCause::Abort),
             (SupervisorCommand::EStop, AbortCause::EStop),
@@ -289,7 +314,8 @@ fn abort_and_e_stop_mid_motion_hold_the_arms_at_once_and_nothing_moves_after() {
 #[test]
 fn a_pause_mid_motion_holds_until_resumed_and_the_step_goes_on_where_it_stopped() {
     let base = run(Vec::new(), 3);
-    for (name, step, t) in moments(&base) {
+    let all = [moments(&base), first_moments(&base), last_moments(&base)];
+    for (name, step, t) in all.into_iter().flatten() {
         let context = format!("pause in {name} at {t:.2} s, resume 3 s later");
         let r = run(
             commands(&[
@@ -332,7 +358,9 @@ fn a_pause_mid_motion_holds_until_resumed_and_the_step_goes_on_where_it_stopped(
 #[test]
 fn a_take_over_mid_motion_ends_the_attempt_and_the_hand_back_reruns_it_or_goes_past_it() {
     let base = run(Vec::new(), 3);
-    for (name, step, t) in moments(&base) {
+    let mut committed_seen = std::collections::BTreeSet::new();
+    let all = [moments(&base), first_moments(&base), last_moments(&base)];
+    for (name, step, t) in all.into_iter().flatten() {
         let context = format!("take-over in {name} at {t:.2} s, hand-back 5 s later");
         let r = run(
             commands(&[
@@ -386,6 +414,7 @@ fn a_take_over_mid_motion_ends_the_attempt_and_the_hand_back_reruns_it_or_goes_p
             (0, step, 1)
         };
         assert_eq!(next, Some(expect), "{context} (committed: {committed})");
+        committed_seen.insert((name, committed));
         assert_eq!(
             r.report.interventions, 0,
             "{context}: no intervention spent"
@@ -395,6 +424,24 @@ fn a_take_over_mid_motion_ends_the_attempt_and_the_hand_back_reruns_it_or_goes_p
                 && us(rec.t_s) < us(t + 5.0)
         });
         assert!(!retried, "{context}: the interruption spent a retry");
+    }
+    // Both branches are taken: the steps with a commit point were taken over before it and
+    // past it, the others only before.
+    for name in ["insert", "extract", "handover"] {
+        assert!(
+            committed_seen.contains(&(name, false)),
+            "{name} before its commit point: {committed_seen:?}"
+        );
+        assert!(
+            committed_seen.contains(&(name, true)),
+            "{name} past its commit point: {committed_seen:?}"
+        );
+    }
+    for name in ["sweep", "correct"] {
+        assert!(
+            !committed_seen.contains(&(name, true)),
+            "{name} has no commit point"
+        );
     }
 }
 
