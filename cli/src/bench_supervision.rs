@@ -19,7 +19,7 @@ use stitch_sim::SensingConfig;
 /// `stitch bench supervision`.
 #[derive(Debug, clap::Args)]
 pub struct BenchSupervisionArgs {
-    /// Pauses sent per robot (each is resumed 30 ms later); those that land while an arm
+    /// Pauses sent per robot (each is resumed 30 ms later); those sent while an arm
     /// moves are the measured ones.
     #[arg(long, default_value_t = 120)]
     pub commands: usize,

@@ -189,7 +189,8 @@ enum Command {
     /// and seed, and say "identical" or where it first diverges (see docs/journal.md).
     #[command(after_help = EXIT_CODES)]
     Replay(replay::ReplayArgs),
-    /// Benchmarks: `stitch bench perception`, `stitch bench segmentation`, `stitch bench ros2`.
+    /// Benchmarks: `stitch bench perception`, `stitch bench segmentation`, `stitch bench
+    /// supervision`, `stitch bench ros2`.
     Bench {
         #[command(subcommand)]
         command: perceive::BenchCommand,
