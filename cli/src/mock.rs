@@ -4,7 +4,7 @@ use std::sync::Arc;
 use std::sync::mpsc::Receiver;
 use stitch_engine::{
     CheckpointRequest, InterventionRequest, InterventionResult, LIVE_POLL, Moment, NeedleHolder,
-    NextPoll, Plan, ScriptedSupervisor, Supervisor, SupervisorCommand, TimedCommand,
+    NextPoll, Plan, Resumption, ScriptedSupervisor, Supervisor, SupervisorCommand, TimedCommand,
 };
 use stitch_primitives::StepKind;
 use stitch_sim::{MockDvrk, NeedlePlace};
@@ -99,6 +99,29 @@ impl Supervisor for MockSupervisor {
         }
     }
 
+    /// The simulated surgeon readies the workspace for the step the run goes on at, as after
+    /// an intervention: the needle where the plan has it then (one recovery motion).
+    fn hand_back(&mut self, to: &Resumption) -> SupervisorCommand {
+        let needs = match self
+            .plan
+            .holders()
+            .get(to.throw)
+            .and_then(|t| t.get(to.step).copied().flatten())
+        {
+            Some(NeedleHolder::Tissue) => NeedlePlace::Tissue,
+            Some(NeedleHolder::Left) => NeedlePlace::Left,
+            // In the right jaw, or past the throw's end: the next throw begins with it there.
+            _ => NeedlePlace::Right,
+        };
+        match (self.recover)(needs) {
+            Ok(()) => SupervisorCommand::HandBack,
+            Err(e) => {
+                eprintln!("hand-back: the workspace could not be readied ({e}); aborting");
+                SupervisorCommand::Abort
+            }
+        }
+    }
+
     /// The simulated supervisor confirms every checkpoint.
     fn checkpoint(&mut self, _request: &CheckpointRequest) -> Option<SupervisorCommand> {
         Some(SupervisorCommand::Go)
@@ -133,5 +156,52 @@ impl Supervisor for MockSupervisor {
                 InterventionResult::Failed
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::Mutex;
+
+    fn plan() -> Arc<Plan> {
+        let spec = stitch_robot::WoundSpec::default();
+        let wound = stitch_robot::Wound::linear(&spec).expect("wound");
+        let loader = stitch_engine::PlanLoader::new(&wound, stitch_engine::ScriptLimits::default());
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scripts/stitch.rhai");
+        Arc::new(stitch_engine::load_plan(&loader, &path).expect("plan").plan)
+    }
+
+    #[test]
+    fn a_hand_back_readies_the_workspace_for_the_step_the_run_goes_on_at() {
+        let asked = Arc::new(Mutex::new(Vec::new()));
+        let log = Arc::clone(&asked);
+        let mut s = MockSupervisor::with(
+            Box::new(move |needs| {
+                log.lock().expect("log").push(needs);
+                Ok(())
+            }),
+            plan(),
+        );
+        // STITCH: insert, sweep, extract, cinch, handover, correct.
+        for (step, needs) in [
+            (0, NeedlePlace::Right),
+            (1, NeedlePlace::Tissue),
+            (2, NeedlePlace::Tissue),
+            (3, NeedlePlace::Left),
+            (4, NeedlePlace::Left),
+            (5, NeedlePlace::Right),
+            // Past the last step (a committed correction): the next throw's start.
+            (6, NeedlePlace::Right),
+        ] {
+            let c = s.hand_back(&Resumption { throw: 0, step });
+            assert_eq!(c, SupervisorCommand::HandBack);
+            assert_eq!(asked.lock().expect("log").pop(), Some(needs), "step {step}");
+        }
+        let mut failing = MockSupervisor::with(Box::new(|_| Err("no side channel".into())), plan());
+        assert_eq!(
+            failing.hand_back(&Resumption { throw: 1, step: 0 }),
+            SupervisorCommand::Abort
+        );
     }
 }

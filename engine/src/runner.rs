@@ -5,11 +5,13 @@
 use crate::condition::Facts;
 use crate::journal::{Arrival, During, Entry, Journal, RunOutcome};
 use crate::machine::{
-    Ctx, Cursor, Effect, Event, Mission, Pending, State, pending, state_label, state_parts,
+    Ctx, Cursor, Effect, Event, Interrupted, Mission, Pending, State, pending, state_label,
+    state_parts,
 };
 use crate::plan::{NeedleHolder, Op, Plan};
 use crate::supervisor::{
-    CheckpointRequest, InterventionRequest, InterventionResult, Moment, NextPoll, Supervisor,
+    CheckpointRequest, InterventionRequest, InterventionResult, Moment, NextPoll, Resumption,
+    Supervisor, SupervisorCommand,
 };
 use serde::Serialize;
 use statig::blocking::{InitializedStateMachine, IntoStateMachineExt};
@@ -67,7 +69,7 @@ pub struct CheckpointSeen {
     /// What the surgeon confirms.
     pub label: String,
     /// The answer; `None` if none came (the supervisor was gone, or the journal stops).
-    pub answer: Option<crate::supervisor::SupervisorCommand>,
+    pub answer: Option<SupervisorCommand>,
 }
 
 /// What happened in one throw.
@@ -221,7 +223,21 @@ impl<'a> Runner<'a> {
                 Pending::Done => break,
                 Pending::Start => self.dispatch(Event::Start),
                 Pending::Command(_) => {
-                    let event = self.wait_command();
+                    let mut event = self.wait_command();
+                    if let (
+                        Event::Supervisor(SupervisorCommand::HandBack),
+                        State::TakenOver { cursor, at },
+                    ) = (&event, self.machine.state())
+                    {
+                        let to = Resumption {
+                            throw: cursor.throw,
+                            step: match at {
+                                Interrupted::Committed => cursor.step + 1,
+                                Interrupted::Between | Interrupted::MidStep => cursor.step,
+                            },
+                        };
+                        event = Event::Supervisor(self.supervisor.hand_back(&to));
+                    }
                     self.dispatch(event);
                 }
                 Pending::Intervention(c, class) => {

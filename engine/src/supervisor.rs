@@ -163,6 +163,14 @@ pub trait Supervisor {
     /// supervisor is gone and the run must abort.
     fn wait(&mut self) -> Option<SupervisorCommand>;
 
+    /// The surgeon, who took over, hands back: the run goes on at `to`. A supervisor that
+    /// readies the workspace for it (a simulated surgeon) does so here, and says `hand-back`,
+    /// or `abort` if it could not; a person has done so before saying `hand-back`.
+    fn hand_back(&mut self, to: &Resumption) -> SupervisorCommand {
+        let _ = to;
+        SupervisorCommand::HandBack
+    }
+
     /// Perform the intervention the robot asked for and say how it ended.
     fn intervene(&mut self, request: &InterventionRequest) -> InterventionResult;
 
@@ -170,6 +178,16 @@ pub trait Supervisor {
     /// or `abort`, `e-stop`, `take-over`; `None` means the supervisor is gone and the run
     /// must abort.
     fn checkpoint(&mut self, request: &CheckpointRequest) -> Option<SupervisorCommand>;
+}
+
+/// Where the run goes on after a hand-back.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Resumption {
+    /// Throw index, 0-based.
+    pub throw: usize,
+    /// Program index, 0-based: the interrupted step's, or the one after it if the step had
+    /// passed its commit point (possibly past the throw's end: the next throw's start).
+    pub step: usize,
 }
 
 /// What the robot tells the surgeon at a checkpoint.
