@@ -11,7 +11,7 @@ use std::io::Write;
 use std::sync::mpsc::Sender;
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant};
-use stitch_engine::{Entry, Loaded, SupervisorCommand};
+use stitch_engine::{Loaded, SupervisorCommand};
 use stitch_primitives::{MockPerception, Rig};
 use stitch_robot::{Arm, MoveHandle, Pose, RobotError, SpeedLimits};
 use stitch_sim::SensingConfig;
@@ -188,17 +188,6 @@ fn measure(
         }))),
         ..Supervision::default()
     };
-    let landed = Arc::new(Mutex::new(0usize));
-    let count = Arc::clone(&landed);
-    *supervision.sink.borrow_mut() = Some(Box::new(move |r| {
-        if let Entry::Supervisor {
-            command: SupervisorCommand::Pause,
-            ..
-        } = r.entry
-        {
-            *count.lock().unwrap_or_else(PoisonError::into_inner) += 1;
-        }
-    }));
     let feeder = sender(tx, args.commands, args.seed, Arc::clone(&sent), motions);
     let report = run(&supervision)?;
     let _ = feeder.join();
@@ -215,9 +204,6 @@ fn measure(
             continue;
         };
         let ms = (t - *t0).as_secs_f64() * 1e3;
-        if std::env::var_os("STITCH_BENCH_DEBUG").is_some() && ms > 10.0 {
-            eprintln!("{robot}: pause {i}: {ms:.1} ms (moving: {was_moving})");
-        }
         if was_moving {
             moving.push(ms);
             if let Some(r) = reached
@@ -234,9 +220,8 @@ fn measure(
         v.sort_by(f64::total_cmp);
     }
     eprintln!(
-        "{robot}: {} pauses sent, {} landed, run {:?}",
+        "{robot}: {} pauses sent, run {:?}",
         sent.len(),
-        landed.lock().unwrap_or_else(PoisonError::into_inner),
         report.outcome
     );
     Ok(Row {

@@ -613,8 +613,6 @@ pub(crate) struct Supervision {
     /// `commands`; taken by the run.
     pub feed:
         std::cell::RefCell<Option<std::sync::mpsc::Receiver<stitch_engine::SupervisorCommand>>>,
-    /// A journal sink for a run without a recorder (a benchmark's clock on the journal).
-    pub sink: std::cell::RefCell<Option<stitch_engine::JournalSink>>,
     /// Wraps the rig's arms and jaws before the run (a benchmark's watch on the holds).
     #[allow(clippy::type_complexity)]
     pub rig: std::cell::RefCell<
@@ -655,13 +653,8 @@ impl Supervision {
         }
     }
 
-    /// `runner`, printing each step as it ends where asked, its journal streamed to the sink
-    /// where one was given.
+    /// `runner`, printing each step as it ends where asked.
     pub fn show<'a>(&self, runner: Runner<'a>) -> Runner<'a> {
-        let runner = match self.sink.borrow_mut().take() {
-            Some(sink) => runner.streaming(Some(sink)),
-            None => runner,
-        };
         if self.live {
             runner.on_attempt(Box::new(|throw, a| {
                 eprintln!("{}", show::attempt_line(throw, a));

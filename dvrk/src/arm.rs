@@ -1015,7 +1015,7 @@ impl Motion {
     }
 
     /// Busy up, then down, within the timeouts; then the goal within tolerance.
-    fn run(&self, timeout: Duration) -> Result<(), RobotError> {
+    fn run(&self) -> Result<(), RobotError> {
         let l = &self.link;
         let c = &l.config;
         let what = match self.goal {
@@ -1074,7 +1074,7 @@ impl Motion {
             }
         };
         // 2. Busy falls.
-        let limit = timeout.min(secs(c.move_timeout_s));
+        let limit = secs(c.move_timeout_s);
         let fall = self.sent + limit;
         let fell = match idle_already {
             Some(idle) => Some(Ok(idle)),
@@ -1169,7 +1169,7 @@ impl Watched {
             let motion = Arc::clone(&self.motion);
             let result = Arc::clone(&self.result);
             let verify = move || {
-                let r = motion.run(Duration::MAX);
+                let r = motion.run();
                 let (slot, ready) = &*result;
                 *slot.lock().unwrap_or_else(PoisonError::into_inner) = Some(r);
                 ready.notify_all();

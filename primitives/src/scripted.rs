@@ -356,27 +356,18 @@ impl Primitives for ScriptedPrimitives {
         let (mut done, mut committed) = (Duration::ZERO, false);
         let holds = &mut self.holds;
         let calls = self.calls.len();
+        let mut first = true;
         loop {
             if commits && !committed && done >= total / 2 {
                 committed = true;
                 control.commit();
             }
-            if done >= total {
-                break;
-            }
-            let left = total - done;
-            let slice = control.slice().map_or(left, |s| s.min(left));
-            self.clock.sleep(slice);
-            done += slice;
-            if commits && !committed && done >= total / 2 {
-                committed = true;
-                control.commit();
-            }
+            // Asked after each slice (none before the first).
             let mut hold = || {
                 holds.push(calls);
                 Ok(())
             };
-            if control.check(&mut hold) == Control::Stop {
+            if !first && control.check(&mut hold) == Control::Stop {
                 if let Some(c) = self.calls.last_mut() {
                     c.interrupted = true;
                 }
@@ -385,6 +376,14 @@ impl Primitives for ScriptedPrimitives {
                     measured: Measurements::default(),
                 };
             }
+            first = false;
+            if done >= total {
+                break;
+            }
+            let left = total - done;
+            let slice = control.slice().map_or(left, |s| s.min(left));
+            self.clock.sleep(slice);
+            done += slice;
         }
         let token = self.token(name);
         if let Some(c) = self.calls.last_mut() {
