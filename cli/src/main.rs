@@ -2,6 +2,7 @@
 #![allow(clippy::print_stdout)] // a command-line tool prints its results
 
 mod bench_supervision;
+#[cfg(feature = "ros2")]
 mod console;
 mod mock;
 mod perceive;
@@ -13,6 +14,10 @@ mod ros2;
 mod segmenter;
 mod show;
 mod trials;
+#[cfg(feature = "console")]
+mod web;
+#[cfg(feature = "console")]
+use web::Feeds as ConsoleFeeds;
 
 use anyhow::Context;
 use clap::{Parser, Subcommand, ValueEnum};
@@ -141,6 +146,16 @@ enum Command {
         /// default: as fast as it can. The journal is the same at any pace.
         #[arg(long, value_name = "X")]
         pace: Option<f64>,
+        /// Serve the live web console at ADDR [default: 127.0.0.1:8080; port 0: any free
+        /// one]: the run as it goes and the supervisor's buttons, guarded by a token printed
+        /// at start (docs/console.md). Mock and --robot ros2 against the sim-node; the
+        /// simulated clock then runs at --pace 1.0 unless told otherwise.
+        #[arg(long, value_name = "ADDR", num_args = 0..=1, default_missing_value = "127.0.0.1:8080")]
+        console: Option<std::net::SocketAddr>,
+        /// Let --console listen on an address other than loopback (a warning says who can
+        /// then reach it).
+        #[arg(long, requires = "console")]
+        console_remote: bool,
         /// Print the final outcome as JSON instead of the timeline.
         #[arg(long)]
         json: bool,
@@ -402,6 +417,8 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
             outcomes,
             commands,
             pace,
+            console,
+            console_remote,
             json,
             skip_validation,
             wound,
@@ -429,6 +446,28 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
                      the commands (docs/dvrk.md)"
                 );
             }
+            if console.is_some() {
+                if robot == RobotKind::Scripted || no_simulator {
+                    anyhow::bail!(
+                        "--console commands the mock or the sim-node's arms (--robot mock, or \
+                         --robot ros2 without --no-simulator); on a real dVRK the surgeon at \
+                         this terminal supervises"
+                    );
+                }
+                if commands.is_some() {
+                    anyhow::bail!(
+                        "--console and --commands: the console's person commands; use one"
+                    );
+                }
+                if !cfg!(feature = "console") {
+                    anyhow::bail!(
+                        "--console: this stitch was built without the `console` feature; \
+                         rebuild with `cargo build --release --features console`"
+                    );
+                }
+            }
+            // A run a person watches goes at the wall clock's pace unless told otherwise.
+            let pace = pace.or((console.is_some() && robot == RobotKind::Mock).then_some(1.0));
             if let Some(p) = pace {
                 if robot == RobotKind::Ros2 {
                     anyhow::bail!(
@@ -500,6 +539,24 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
                 None => None,
             };
             let rec = recorder.as_ref();
+            #[cfg(feature = "console")]
+            let console = match console {
+                Some(addr) => {
+                    let plan = Arc::new(loaded.plan.clone());
+                    let (console, feeds) = web::Console::start(addr, console_remote, &plan)?;
+                    eprintln!(
+                        "console: {} (the token after #token= guards every command; keep it \
+                         to yourself)",
+                        console.url()
+                    );
+                    *supervision.console.borrow_mut() = Some(feeds);
+                    *supervision.watch.borrow_mut() = Some(console.sink());
+                    Some(console)
+                }
+                None => None,
+            };
+            #[cfg(not(feature = "console"))]
+            let _ = (console, console_remote);
             let report = match robot {
                 RobotKind::Scripted => {
                     let schedule = outcomes.as_deref().map(OutcomeSchedule::read).transpose()?;
@@ -521,6 +578,9 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
                     }
                 }
             };
+            // Viewers read the end; the server stops.
+            #[cfg(feature = "console")]
+            drop(console);
             // A recording that failed does not hide how the run went: the timeline first.
             let mut recorded = Ok(());
             if let Some(recorder) = recorder {
@@ -613,6 +673,11 @@ pub(crate) struct Supervision {
     /// `commands`; taken by the run.
     pub feed:
         std::cell::RefCell<Option<std::sync::mpsc::Receiver<stitch_engine::SupervisorCommand>>>,
+    /// The web console's commands and refusals (`--console`); taken by the run.
+    #[cfg(feature = "console")]
+    pub console: std::cell::RefCell<Option<ConsoleFeeds>>,
+    /// Where else each journal record goes as it is journaled (the web console's viewers).
+    pub watch: std::cell::RefCell<Option<stitch_engine::JournalSink>>,
     /// Wraps the rig's arms and jaws before the run (a benchmark's watch on the holds).
     #[allow(clippy::type_complexity)]
     pub rig: std::cell::RefCell<
@@ -646,10 +711,26 @@ impl Supervision {
 
     /// The simulated surgeon `supervisor`, given this run's commands.
     pub fn supervise(&self, supervisor: mock::MockSupervisor) -> mock::MockSupervisor {
+        #[cfg(feature = "console")]
+        if let Some(feeds) = self.console.borrow_mut().take() {
+            return supervisor.consoled(feeds);
+        }
         match self.feed.borrow_mut().take() {
             Some(feed) => supervisor.fed(feed),
             None if !self.commands.is_empty() => supervisor.commanding(self.commands.clone()),
             None => supervisor,
+        }
+    }
+
+    /// The run's journal sink: the recorder's, the console's, both or none.
+    pub fn sink(&self, recorder: Option<&Recorder>) -> Option<stitch_engine::JournalSink> {
+        let watch = self.watch.borrow_mut().take();
+        match (recorder.map(Recorder::sink), watch) {
+            (Some(mut a), Some(mut b)) => Some(Box::new(move |r| {
+                a(r);
+                b(r);
+            })),
+            (a, b) => a.or(b),
         }
     }
 
@@ -811,7 +892,7 @@ pub(crate) fn run_mock(
         Arc::new(clock),
         Some(seed),
     )
-    .streaming(recorder.map(Recorder::sink));
+    .streaming(supervision.sink(recorder));
     Ok(supervision.show(runner).run())
 }
 

@@ -4,7 +4,8 @@ use std::sync::Arc;
 use std::sync::mpsc::Receiver;
 use stitch_engine::{
     CheckpointRequest, InterventionRequest, InterventionResult, LIVE_POLL, Moment, NeedleHolder,
-    NextPoll, Plan, Resumption, ScriptedSupervisor, Supervisor, SupervisorCommand, TimedCommand,
+    NextPoll, Plan, Refusal, Resumption, ScriptedSupervisor, Supervisor, SupervisorCommand,
+    TimedCommand,
 };
 use stitch_primitives::StepKind;
 use stitch_sim::{MockDvrk, NeedlePlace};
@@ -25,6 +26,11 @@ pub struct MockSupervisor {
     source: &'static str,
     /// Commands given live, from another thread (a benchmark's, a console's).
     feed: Option<Receiver<SupervisorCommand>>,
+    /// Commands a console refused, for the journal.
+    refusals: Option<Receiver<Refusal>>,
+    /// Checkpoints wait for the feed's answer (a person at a console) instead of being
+    /// confirmed at once.
+    asks_at_checkpoints: bool,
 }
 
 impl std::fmt::Debug for MockSupervisor {
@@ -53,6 +59,8 @@ impl MockSupervisor {
             commands: ScriptedSupervisor::default(),
             source: "mock",
             feed: None,
+            refusals: None,
+            asks_at_checkpoints: false,
         }
     }
 
@@ -61,6 +69,18 @@ impl MockSupervisor {
     pub fn fed(mut self, feed: Receiver<SupervisorCommand>) -> Self {
         self.feed = Some(feed);
         self.source = "live";
+        self
+    }
+
+    /// The same, commanded by a person at the web console: its commands as they come, its
+    /// refusals journaled, its answer awaited at every checkpoint. Interventions are still
+    /// the simulated surgeon's (a person cannot move the mock's needle).
+    #[cfg(feature = "console")]
+    pub fn consoled(mut self, feeds: crate::ConsoleFeeds) -> Self {
+        self = self.fed(feeds.commands);
+        self.refusals = Some(feeds.refusals);
+        self.source = "console";
+        self.asks_at_checkpoints = true;
         self
     }
 
@@ -89,6 +109,10 @@ impl Supervisor for MockSupervisor {
 
     fn source(&self) -> &str {
         self.source
+    }
+
+    fn refused(&mut self) -> Option<Refusal> {
+        self.refusals.as_ref()?.try_recv().ok()
     }
 
     /// The next scheduled command, if any; with none left, the run aborts.
@@ -122,9 +146,18 @@ impl Supervisor for MockSupervisor {
         }
     }
 
-    /// The simulated supervisor confirms every checkpoint.
+    /// The simulated supervisor confirms every checkpoint; a console's person is asked.
     fn checkpoint(&mut self, _request: &CheckpointRequest) -> Option<SupervisorCommand> {
-        Some(SupervisorCommand::Go)
+        match &self.feed {
+            Some(feed) if self.asks_at_checkpoints => loop {
+                match feed.recv().ok()? {
+                    // A pause or resume answers nothing here; the arms already hold.
+                    SupervisorCommand::Pause | SupervisorCommand::Resume => {}
+                    c => return Some(c),
+                }
+            },
+            _ => Some(SupervisorCommand::Go),
+        }
     }
 
     fn intervene(&mut self, request: &InterventionRequest) -> InterventionResult {

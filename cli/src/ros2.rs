@@ -389,7 +389,7 @@ pub fn run_ros2(
     );
     let mut supervisor = supervision.supervise(supervisor);
     let runner = Runner::new(plan, &mut primitives, &mut supervisor, clock, Some(seed))
-        .streaming(recorder.map(Recorder::sink));
+        .streaming(supervision.sink(recorder));
     Ok(supervision.show(runner).run())
 }
 

@@ -173,6 +173,18 @@ pub enum Entry {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         during: Option<During>,
     },
+    /// A command that did not reach the machine: refused by the supervisor's channel (a
+    /// console's command without the run's token, from another origin, from a viewer not
+    /// in control, ...). Journaled when the engine next asks its supervisor, so its time is
+    /// that moment's.
+    Refused {
+        /// What was asked, as it was written (possibly not a command at all).
+        command: String,
+        /// Who asked (`console`, with the peer's address where known).
+        from: String,
+        /// Why it was refused.
+        why: String,
+    },
     /// A plan's condition was decided.
     Condition {
         /// Throw index, 0-based.

@@ -36,7 +36,7 @@ pub use schedule::{OutcomeSchedule, ScheduleError};
 pub use script::{API, Angle, Length, Loaded, PlanLoader, ScriptLimits, Time};
 pub use supervisor::{
     CheckpointRequest, InStep, InterventionRequest, InterventionResult, LIVE_POLL, Moment,
-    NextPoll, Resumption, ScriptedSupervisor, Supervisor, SupervisorCommand, TimedCommand,
+    NextPoll, Refusal, Resumption, ScriptedSupervisor, Supervisor, SupervisorCommand, TimedCommand,
 };
 pub use validate::{retry_cap, validate};
 

@@ -248,6 +248,7 @@ impl<'a> Runner<'a> {
                         class,
                     };
                     let result = self.supervisor.intervene(&request);
+                    journal_refused(&mut *self.supervisor, &mut self.ctx, &*self.clock);
                     if let Some(t) = self.throws.get_mut(c.throw) {
                         t.interventions += 1;
                         if let Some(last) = t.attempts.last_mut() {
@@ -264,6 +265,7 @@ impl<'a> Runner<'a> {
                         mid_step: false,
                         committed: false,
                     };
+                    journal_refused(&mut *self.supervisor, &mut self.ctx, &*self.clock);
                     if let Some(command) = self.supervisor.poll(&moment) {
                         self.arriving();
                         self.dispatch(Event::Supervisor(command));
@@ -290,6 +292,7 @@ impl<'a> Runner<'a> {
                         label,
                     };
                     let answer = self.supervisor.checkpoint(&request);
+                    journal_refused(&mut *self.supervisor, &mut self.ctx, &*self.clock);
                     if let Some(t) = self.throws.get_mut(c.throw) {
                         t.checkpoints.push(CheckpointSeen {
                             step: c.step,
@@ -589,7 +592,10 @@ fn wait_command(
     if let Some(NextPoll::In(d)) = supervisor.next_poll(&moment) {
         clock.sleep(d);
     }
-    match supervisor.wait() {
+    journal_refused(supervisor, ctx, clock);
+    let command = supervisor.wait();
+    journal_refused(supervisor, ctx, clock);
+    match command {
         Some(command) => {
             ctx.arrival = Arrival {
                 from: Some(supervisor.source().to_string()),
@@ -598,6 +604,18 @@ fn wait_command(
             Event::Supervisor(command)
         }
         None => Event::SupervisorLost,
+    }
+}
+
+/// Journal the commands the supervisor refused since it was last asked.
+fn journal_refused(supervisor: &mut dyn Supervisor, ctx: &mut Ctx, clock: &dyn Clock) {
+    while let Some(r) = supervisor.refused() {
+        ctx.journal.set_now(clock.now());
+        ctx.journal.push(Entry::Refused {
+            command: r.command,
+            from: r.from,
+            why: r.why,
+        });
     }
 }
 
@@ -651,6 +669,7 @@ impl StepControl for Live<'_> {
             mid_step: true,
             committed: self.during.committed,
         };
+        journal_refused(self.supervisor, self.ctx, self.clock);
         let Some(command) = self.supervisor.poll(&moment) else {
             return Control::Go;
         };
@@ -894,7 +913,7 @@ impl Rebuilt {
                     let t = throw(*t, &mut out)?;
                     reached = reached.max(Some(t));
                 }
-                Entry::Transition { .. } | Entry::Hold { .. } => {}
+                Entry::Transition { .. } | Entry::Hold { .. } | Entry::Refused { .. } => {}
             }
         }
         // The last throw the run reached: by a step, a condition, a checkpoint, or where it

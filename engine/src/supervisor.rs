@@ -159,6 +159,12 @@ pub trait Supervisor {
         "supervisor"
     }
 
+    /// A command refused since the last call (by a console's guard, say), to journal: the
+    /// engine asks until `None` whenever it asks for a command.
+    fn refused(&mut self) -> Option<Refusal> {
+        None
+    }
+
     /// Wait for the next command while the run is paused or taken over; `None` means the
     /// supervisor is gone and the run must abort.
     fn wait(&mut self) -> Option<SupervisorCommand>;
@@ -178,6 +184,17 @@ pub trait Supervisor {
     /// or `abort`, `e-stop`, `take-over`; `None` means the supervisor is gone and the run
     /// must abort.
     fn checkpoint(&mut self, request: &CheckpointRequest) -> Option<SupervisorCommand>;
+}
+
+/// A command refused before it reached the machine, and why ([`Supervisor::refused`]).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Refusal {
+    /// What was asked, as it was written.
+    pub command: String,
+    /// Who asked.
+    pub from: String,
+    /// Why it was refused.
+    pub why: String,
 }
 
 /// Where the run goes on after a hand-back.

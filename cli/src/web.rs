@@ -1,0 +1,614 @@
+//! `stitch run --console`: the surgeon's seat in a browser, served by the binary itself.
+//!
+//! The engine runs on its own thread and never waits on a viewer: it appends each journal
+//! record to the [`Hub`] (a `Vec` behind a mutex) and bumps a counter; every viewer's task
+//! sends the records it has not yet sent, at its own speed. Events are never dropped for a
+//! slow viewer; it only falls behind. Commands come back through a channel the supervisor
+//! polls every [`stitch_engine::LIVE_POLL`] while a step moves.
+//!
+//! Locked: the server binds loopback unless told otherwise; every command and stream checks
+//! the `Host` (DNS rebinding) and `Origin` (another site's page) headers and the per-run
+//! token (`Authorization: Bearer`, or the stream's first message); one viewer is in control
+//! at a time. Every refused command goes to the run's journal ([`Entry::Refused`]).
+//!
+//! [`Entry::Refused`]: stitch_engine::Entry::Refused
+
+use axum::extract::ws::{Message, WebSocket, WebSocketUpgrade};
+use axum::extract::{ConnectInfo, State};
+use axum::http::{HeaderMap, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post};
+use serde::Deserialize;
+use serde_json::{Value, json};
+use std::net::SocketAddr;
+use std::sync::mpsc::{Receiver, Sender};
+use std::sync::{Arc, Mutex, OnceLock, PoisonError};
+use std::time::Duration;
+use stitch_engine::{JournalSink, Op, Plan, Record, Refusal, SupervisorCommand};
+use tokio::sync::watch;
+
+/// The page and its script and style, embedded (nothing fetched at run time).
+const INDEX_HTML: &str = include_str!("../web/index.html");
+const APP_JS: &str = include_str!("../web/app.js");
+const APP_CSS: &str = include_str!("../web/app.css");
+
+/// Strict: the page's own script and style only, no inline code, nothing from elsewhere.
+const CSP: &str = "default-src 'none'; script-src 'self'; style-src 'self'; img-src 'self' blob:; \
+                   connect-src 'self'; base-uri 'none'; form-action 'none'; frame-ancestors 'none'";
+
+/// How long a viewer has to send the token after opening the stream.
+const TOKEN_WAIT: Duration = Duration::from_secs(5);
+
+/// What the engine's side shares with the viewers' tasks.
+pub struct Hub {
+    state: Mutex<HubState>,
+    /// Bumped on every change viewers must hear about (a record, the control, the end).
+    changed: watch::Sender<u64>,
+    token: String,
+    /// The `Host` header values a request may carry (`127.0.0.1:8080`, `localhost:8080`, ...).
+    hosts: Vec<String>,
+    /// The plan as the page draws it.
+    plan: Value,
+    /// The explored state diagram's edges, once computed (off the engine's thread).
+    diagram: OnceLock<Value>,
+    commands: Mutex<Sender<SupervisorCommand>>,
+    refusals: Mutex<Sender<Refusal>>,
+}
+
+#[derive(Default)]
+struct HubState {
+    /// Every journal record so far, as JSON.
+    events: Vec<Arc<str>>,
+    /// The viewer in control, if any.
+    control: Option<u64>,
+    next_viewer: u64,
+    /// Viewers connected now.
+    viewers: usize,
+    /// The run ended: viewers send what is left and close.
+    ended: bool,
+}
+
+impl Hub {
+    fn lock(&self) -> std::sync::MutexGuard<'_, HubState> {
+        self.state.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    fn bump(&self) {
+        self.changed.send_modify(|n| *n += 1);
+    }
+
+    fn refuse(&self, from: &str, command: &str, why: &str) {
+        let _ = self
+            .refusals
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .send(Refusal {
+                command: command.to_string(),
+                from: from.to_string(),
+                why: why.to_string(),
+            });
+    }
+
+    /// Check `Host` and `Origin`: the reason to refuse, if any.
+    fn check_origin(&self, headers: &HeaderMap) -> Option<String> {
+        let host = headers.get(header::HOST).and_then(|h| h.to_str().ok());
+        let Some(host) = host.filter(|h| self.hosts.iter().any(|a| a == h)) else {
+            return Some(format!(
+                "Host {:?} is not this console's (expected one of {})",
+                host.unwrap_or(""),
+                self.hosts.join(", ")
+            ));
+        };
+        // Browsers send `Origin` with every POST and WebSocket; a client that is not a page
+        // (a script, curl) sends none and cannot be steered by another site.
+        match headers
+            .get(header::ORIGIN)
+            .map(|o| o.to_str().unwrap_or("?"))
+        {
+            Some(o) if o != format!("http://{host}") => Some(format!(
+                "Origin {o:?} is not this console's (http://{host})"
+            )),
+            _ => None,
+        }
+    }
+
+    fn token_ok(&self, given: &str) -> bool {
+        // Compared in time independent of where they differ.
+        let (a, b) = (given.as_bytes(), self.token.as_bytes());
+        a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
+    }
+}
+
+/// What the engine's supervisor takes from the console.
+pub struct Feeds {
+    /// Commands from the viewer in control (and an e-stop from any viewer).
+    pub commands: Receiver<SupervisorCommand>,
+    /// Commands refused, for the journal.
+    pub refusals: Receiver<Refusal>,
+}
+
+/// A running console: dropped, it lets its viewers read the end and stops.
+pub struct Console {
+    hub: Arc<Hub>,
+    addr: SocketAddr,
+    stop: Option<tokio::sync::oneshot::Sender<()>>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl std::fmt::Debug for Console {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Console")
+            .field("addr", &self.addr)
+            .finish_non_exhaustive()
+    }
+}
+
+impl Console {
+    /// Bind `addr` and serve the console for `plan` on a thread of its own. A non-loopback
+    /// address is refused unless `remote`.
+    pub fn start(
+        addr: SocketAddr,
+        remote: bool,
+        plan: &Arc<Plan>,
+    ) -> anyhow::Result<(Self, Feeds)> {
+        if !addr.ip().is_loopback() && !remote {
+            anyhow::bail!(
+                "--console {addr}: not a loopback address; anyone who can reach it could watch \
+                 the run (commands still need the token). Add --console-remote to serve it \
+                 there anyway"
+            );
+        }
+        let listener = std::net::TcpListener::bind(addr)
+            .map_err(|e| anyhow::anyhow!("--console {addr}: cannot listen there: {e}"))?;
+        listener.set_nonblocking(true)?;
+        let addr = listener.local_addr()?;
+        if !addr.ip().is_loopback() {
+            eprintln!(
+                "WARNING: the console listens on {addr}, not loopback: anyone on that network \
+                 can open the page; only the token keeps them from commanding the robot. The \
+                 traffic is not encrypted."
+            );
+        }
+        let port = addr.port();
+        let mut hosts = vec![
+            format!("127.0.0.1:{port}"),
+            format!("localhost:{port}"),
+            format!("[::1]:{port}"),
+        ];
+        if !addr.ip().is_loopback() && !addr.ip().is_unspecified() {
+            hosts.push(addr.to_string());
+        }
+        let (commands, command_rx) = std::sync::mpsc::channel();
+        let (refusals, refusal_rx) = std::sync::mpsc::channel();
+        let hub = Arc::new(Hub {
+            state: Mutex::new(HubState::default()),
+            changed: watch::channel(0).0,
+            token: token(),
+            hosts,
+            plan: plan_json(plan),
+            diagram: OnceLock::new(),
+            commands: Mutex::new(commands),
+            refusals: Mutex::new(refusals),
+        });
+        // The state diagram: the explorer's edges, computed off the engine's thread.
+        {
+            let (hub, plan) = (Arc::clone(&hub), Arc::clone(plan));
+            std::thread::spawn(move || {
+                let options = stitch_engine::ExploreOptions {
+                    max_commands: 1,
+                    ..stitch_engine::ExploreOptions::default()
+                };
+                let found = stitch_engine::explore(plan, options);
+                let edges: Vec<Value> = found.edges.keys().map(|(a, b)| json!([a, b])).collect();
+                let _ = hub.diagram.set(Value::Array(edges));
+                hub.bump();
+            });
+        }
+        let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+        let app = axum::Router::new()
+            .route("/", get(index))
+            .route("/app.js", get(app_js))
+            .route("/app.css", get(app_css))
+            .route("/api/stream", get(stream))
+            .route("/api/command", post(command))
+            .route("/api/control", post(control))
+            .with_state(Arc::clone(&hub));
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()?;
+        let thread = std::thread::Builder::new()
+            .name("console".into())
+            .spawn(move || {
+                runtime.block_on(async move {
+                    let listener = match tokio::net::TcpListener::from_std(listener) {
+                        Ok(l) => l,
+                        Err(e) => {
+                            eprintln!("the console stopped: {e}");
+                            return;
+                        }
+                    };
+                    let serve = axum::serve(
+                        listener,
+                        app.into_make_service_with_connect_info::<SocketAddr>(),
+                    )
+                    .with_graceful_shutdown(async move {
+                        let _ = stopped.await;
+                    });
+                    if let Err(e) = serve.await {
+                        eprintln!("the console stopped: {e}");
+                    }
+                });
+            })?;
+        Ok((
+            Self {
+                hub,
+                addr,
+                stop: Some(stop),
+                thread: Some(thread),
+            },
+            Feeds {
+                commands: command_rx,
+                refusals: refusal_rx,
+            },
+        ))
+    }
+
+    /// Where to open it, token included (in the fragment: never sent to a server).
+    pub fn url(&self) -> String {
+        format!("http://{}/#token={}", self.addr, self.hub.token)
+    }
+
+    /// The journal's sink: every record, as it is journaled.
+    pub fn sink(&self) -> JournalSink {
+        let hub = Arc::clone(&self.hub);
+        Box::new(move |r: &Record| {
+            let text: Arc<str> = serde_json::to_string(r)
+                .unwrap_or_else(|e| format!("{{\"error\":\"record {}: {e}\"}}", r.seq))
+                .into();
+            hub.lock().events.push(text);
+            hub.bump();
+        })
+    }
+}
+
+impl Drop for Console {
+    fn drop(&mut self) {
+        self.hub.lock().ended = true;
+        self.hub.bump();
+        // Viewers get a moment to read the end; then the server stops.
+        let deadline = std::time::Instant::now() + Duration::from_millis(500);
+        while self.hub.lock().viewers > 0 && std::time::Instant::now() < deadline {
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        if let Some(stop) = self.stop.take() {
+            let _ = stop.send(());
+        }
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+/// A per-run token: 128 bits from the operating system's generator.
+fn token() -> String {
+    use rand::TryRngCore;
+    let mut bytes = [0u8; 16];
+    if rand::rngs::OsRng.try_fill_bytes(&mut bytes).is_err() {
+        // No OS randomness: refuse to guard with a guessable token.
+        #[allow(clippy::panic)]
+        {
+            panic!("the console needs the operating system's random generator for its token");
+        }
+    }
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+/// The plan as the page draws it: each throw's program, one line per operation.
+fn plan_json(plan: &Plan) -> Value {
+    let throws: Vec<Value> = plan
+        .throws
+        .iter()
+        .enumerate()
+        .map(|(i, t)| {
+            let ops: Vec<Value> = t
+                .program
+                .iter()
+                .enumerate()
+                .filter_map(|(k, op)| {
+                    let (kind, label) = match op {
+                        Op::Do(s) => ("step", s.kind.name().to_string()),
+                        Op::Branch { cond, role, .. } => ("branch", format!("{role:?} {cond}")),
+                        Op::Checkpoint { label, .. } => {
+                            ("checkpoint", format!("checkpoint: {label}"))
+                        }
+                        Op::Jump { .. } => return None,
+                    };
+                    Some(json!({ "step": k, "kind": kind, "label": label }))
+                })
+                .collect();
+            json!({ "throw": i, "point": t.point.index, "ops": ops })
+        })
+        .collect();
+    json!({
+        "name": plan.name,
+        "file": plan.file,
+        "interventions": plan.interventions,
+        "thread_length_m": plan.thread_length_m,
+        "throws": throws,
+    })
+}
+
+async fn index() -> Response {
+    asset(INDEX_HTML, "text/html; charset=utf-8")
+}
+
+async fn app_js() -> Response {
+    asset(APP_JS, "text/javascript; charset=utf-8")
+}
+
+async fn app_css() -> Response {
+    asset(APP_CSS, "text/css; charset=utf-8")
+}
+
+fn asset(body: &'static str, ty: &'static str) -> Response {
+    (
+        [
+            (header::CONTENT_TYPE, ty),
+            (header::CONTENT_SECURITY_POLICY, CSP),
+            (header::X_CONTENT_TYPE_OPTIONS, "nosniff"),
+            (header::CACHE_CONTROL, "no-store"),
+        ],
+        body,
+    )
+        .into_response()
+}
+
+fn refused(status: StatusCode, why: &str) -> Response {
+    (status, axum::Json(json!({ "refused": why }))).into_response()
+}
+
+/// The bearer token of a request, if it carries one.
+fn bearer(headers: &HeaderMap) -> Option<&str> {
+    headers
+        .get(header::AUTHORIZATION)?
+        .to_str()
+        .ok()?
+        .strip_prefix("Bearer ")
+}
+
+/// Host, Origin and token: the refusal, journaled, if any fails.
+fn guard(hub: &Hub, headers: &HeaderMap, from: &str, what: &str) -> Result<(), Response> {
+    if let Some(why) = hub.check_origin(headers) {
+        hub.refuse(from, what, &why);
+        return Err(refused(StatusCode::FORBIDDEN, &why));
+    }
+    match bearer(headers) {
+        None => {
+            let why = "no token (Authorization: Bearer <the token printed at start>)";
+            hub.refuse(from, what, why);
+            Err(refused(StatusCode::UNAUTHORIZED, why))
+        }
+        Some(t) if !hub.token_ok(t) => {
+            let why = "wrong token";
+            hub.refuse(from, what, why);
+            Err(refused(StatusCode::UNAUTHORIZED, why))
+        }
+        Some(_) => Ok(()),
+    }
+}
+
+#[derive(Deserialize)]
+struct CommandBody {
+    command: String,
+    #[serde(default)]
+    viewer: Option<u64>,
+}
+
+/// `POST /api/command {"command": "pause", "viewer": 3}`.
+async fn command(
+    State(hub): State<Arc<Hub>>,
+    ConnectInfo(peer): ConnectInfo<SocketAddr>,
+    headers: HeaderMap,
+    body: axum::body::Bytes,
+) -> Response {
+    let from = format!("console {peer}");
+    let parsed: Result<CommandBody, _> = serde_json::from_slice(&body);
+    let what = parsed.as_ref().map_or_else(
+        |_| String::from_utf8_lossy(&body).into_owned(),
+        |b| b.command.clone(),
+    );
+    if let Err(r) = guard(&hub, &headers, &from, &what) {
+        return r;
+    }
+    let body = match parsed {
+        Ok(b) => b,
+        Err(e) => {
+            let why =
+                format!("not a command: {e} (expected {{\"command\": \"pause\", \"viewer\": N}})");
+            hub.refuse(&from, &what, &why);
+            return refused(StatusCode::BAD_REQUEST, &why);
+        }
+    };
+    let Some(cmd) = SupervisorCommand::ALL
+        .into_iter()
+        .find(|c| c.as_str() == body.command)
+    else {
+        let names: Vec<&str> = SupervisorCommand::ALL.iter().map(|c| c.as_str()).collect();
+        let why = format!("unknown command (one of {})", names.join(", "));
+        hub.refuse(&from, &what, &why);
+        return refused(StatusCode::BAD_REQUEST, &why);
+    };
+    let from = match body.viewer {
+        Some(v) => format!("console viewer {v} ({peer})"),
+        None => from,
+    };
+    {
+        let state = hub.lock();
+        if state.ended {
+            return refused(StatusCode::CONFLICT, "the run has ended");
+        }
+        // An e-stop is never refused to a viewer with the token.
+        if cmd != SupervisorCommand::EStop
+            && (body.viewer.is_none() || state.control != body.viewer)
+        {
+            let why = match state.control {
+                Some(c) => format!("viewer {c} is in control; take control first"),
+                None => "no viewer is in control; take control first".to_string(),
+            };
+            drop(state);
+            hub.refuse(&from, &what, &why);
+            return refused(StatusCode::CONFLICT, &why);
+        }
+    }
+    if hub
+        .commands
+        .lock()
+        .unwrap_or_else(PoisonError::into_inner)
+        .send(cmd)
+        .is_err()
+    {
+        return refused(StatusCode::CONFLICT, "the run has ended");
+    }
+    (StatusCode::OK, axum::Json(json!({ "sent": cmd.as_str() }))).into_response()
+}
+
+#[derive(Deserialize, Default)]
+struct ControlBody {
+    #[serde(default)]
+    viewer: Option<u64>,
+}
+
+/// `POST /api/control {"viewer": 3}`: that viewer (or a new one, for a client with no
+/// stream) takes control from whoever had it.
+async fn control(
+    State(hub): State<Arc<Hub>>,
+    ConnectInfo(peer): ConnectInfo<SocketAddr>,
+    headers: HeaderMap,
+    body: axum::body::Bytes,
+) -> Response {
+    let from = format!("console {peer}");
+    if let Err(r) = guard(&hub, &headers, &from, "take control") {
+        return r;
+    }
+    let body: ControlBody = if body.is_empty() {
+        ControlBody::default()
+    } else {
+        match serde_json::from_slice(&body) {
+            Ok(b) => b,
+            Err(e) => return refused(StatusCode::BAD_REQUEST, &format!("not a viewer: {e}")),
+        }
+    };
+    let viewer = {
+        let mut state = hub.lock();
+        let v = body.viewer.unwrap_or_else(|| {
+            state.next_viewer += 1;
+            state.next_viewer
+        });
+        state.control = Some(v);
+        v
+    };
+    hub.bump();
+    (StatusCode::OK, axum::Json(json!({ "control": viewer }))).into_response()
+}
+
+#[derive(Deserialize)]
+struct Hello {
+    token: String,
+}
+
+/// `GET /api/stream`: a WebSocket; the first message must be `{"token": "..."}`.
+async fn stream(
+    State(hub): State<Arc<Hub>>,
+    ConnectInfo(peer): ConnectInfo<SocketAddr>,
+    headers: HeaderMap,
+    ws: WebSocketUpgrade,
+) -> Response {
+    let from = format!("console {peer}");
+    if let Some(why) = hub.check_origin(&headers) {
+        hub.refuse(&from, "watch", &why);
+        return refused(StatusCode::FORBIDDEN, &why);
+    }
+    ws.on_upgrade(move |socket| viewer(hub, socket, from))
+}
+
+async fn viewer(hub: Arc<Hub>, mut socket: WebSocket, from: String) {
+    let hello = tokio::time::timeout(TOKEN_WAIT, socket.recv()).await;
+    let token = match hello {
+        Ok(Some(Ok(Message::Text(t)))) => serde_json::from_str::<Hello>(&t).ok().map(|h| h.token),
+        _ => None,
+    };
+    if !token.as_deref().is_some_and(|t| hub.token_ok(t)) {
+        let why = if token.is_some() {
+            "wrong token"
+        } else {
+            "no token"
+        };
+        hub.refuse(&from, "watch", why);
+        let _ = socket
+            .send(Message::Text(
+                json!({ "type": "refused", "why": why }).to_string().into(),
+            ))
+            .await;
+        return;
+    }
+    let id = {
+        let mut state = hub.lock();
+        state.next_viewer += 1;
+        state.viewers += 1;
+        state.next_viewer
+    };
+    let _ = serve_viewer(&hub, &mut socket, id).await;
+    hub.lock().viewers -= 1;
+}
+
+/// Send the plan, then every record and control change as they come, until the run ends or
+/// the viewer goes.
+async fn serve_viewer(hub: &Hub, socket: &mut WebSocket, id: u64) -> Result<(), axum::Error> {
+    let hello = json!({ "type": "hello", "viewer": id, "plan": hub.plan });
+    socket.send(Message::Text(hello.to_string().into())).await?;
+    let mut changed = hub.changed.subscribe();
+    // The control last said (`None`: not yet said).
+    let (mut sent, mut control, mut diagram_sent) = (0usize, None::<Option<u64>>, false);
+    loop {
+        changed.borrow_and_update();
+        let (batch, now_control, ended) = {
+            let state = hub.lock();
+            let batch: Vec<Arc<str>> = state.events[sent..].iter().take(512).cloned().collect();
+            (batch, state.control, state.ended)
+        };
+        if !diagram_sent {
+            if let Some(d) = hub.diagram.get() {
+                let msg = json!({ "type": "diagram", "edges": d });
+                socket.send(Message::Text(msg.to_string().into())).await?;
+                diagram_sent = true;
+            }
+        }
+        if control != Some(now_control) {
+            control = Some(now_control);
+            let msg = json!({ "type": "control", "viewer": now_control });
+            socket.send(Message::Text(msg.to_string().into())).await?;
+        }
+        if !batch.is_empty() {
+            sent += batch.len();
+            // The records are JSON already: joined, not parsed again.
+            let joined: Vec<&str> = batch.iter().map(|s| &**s).collect();
+            let msg = format!("{{\"type\":\"events\",\"events\":[{}]}}", joined.join(","));
+            socket.send(Message::Text(msg.into())).await?;
+            continue;
+        }
+        if ended {
+            socket
+                .send(Message::Text(json!({ "type": "ended" }).to_string().into()))
+                .await?;
+            let _ = socket.send(Message::Close(None)).await;
+            return Ok(());
+        }
+        tokio::select! {
+            r = changed.changed() => if r.is_err() { return Ok(()) },
+            m = socket.recv() => match m {
+                None | Some(Err(_)) | Some(Ok(Message::Close(_))) => return Ok(()),
+                Some(Ok(_)) => {}
+            },
+        }
+    }
+}
