@@ -26,11 +26,12 @@ pub struct MockSupervisor {
     source: &'static str,
     /// Commands given live, from another thread (a benchmark's, a console's).
     feed: Option<Receiver<SupervisorCommand>>,
+    /// A console's commands, each with who sent it; a checkpoint waits for its answer.
+    named: Option<Receiver<(SupervisorCommand, String)>>,
+    /// Who sent the last command heard from `named`.
+    from: String,
     /// Commands a console refused, for the journal.
     refusals: Option<Receiver<Refusal>>,
-    /// Checkpoints wait for the feed's answer (a person at a console) instead of being
-    /// confirmed at once.
-    asks_at_checkpoints: bool,
 }
 
 impl std::fmt::Debug for MockSupervisor {
@@ -59,8 +60,9 @@ impl MockSupervisor {
             commands: ScriptedSupervisor::default(),
             source: "mock",
             feed: None,
+            named: None,
+            from: String::new(),
             refusals: None,
-            asks_at_checkpoints: false,
         }
     }
 
@@ -77,10 +79,9 @@ impl MockSupervisor {
     /// the simulated surgeon's (a person cannot move the mock's needle).
     #[cfg(feature = "console")]
     pub fn consoled(mut self, feeds: crate::ConsoleFeeds) -> Self {
-        self = self.fed(feeds.commands);
+        self.named = Some(feeds.commands);
         self.refusals = Some(feeds.refusals);
         self.source = "console";
-        self.asks_at_checkpoints = true;
         self
     }
 
@@ -94,6 +95,11 @@ impl MockSupervisor {
 
 impl Supervisor for MockSupervisor {
     fn poll(&mut self, at: &Moment) -> Option<SupervisorCommand> {
+        if let Some(named) = &self.named {
+            let (c, from) = named.try_recv().ok()?;
+            self.from = from;
+            return Some(c);
+        }
         match &self.feed {
             Some(feed) => feed.try_recv().ok(),
             None => self.commands.poll(at),
@@ -101,6 +107,9 @@ impl Supervisor for MockSupervisor {
     }
 
     fn next_poll(&self, at: &Moment) -> Option<NextPoll> {
+        if self.named.is_some() {
+            return Some(NextPoll::Every(LIVE_POLL));
+        }
         match &self.feed {
             Some(_) => Some(NextPoll::Every(LIVE_POLL)),
             None => self.commands.next_poll(at),
@@ -108,7 +117,11 @@ impl Supervisor for MockSupervisor {
     }
 
     fn source(&self) -> &str {
-        self.source
+        if self.named.is_some() {
+            &self.from
+        } else {
+            self.source
+        }
     }
 
     fn refused(&mut self) -> Option<Refusal> {
@@ -117,6 +130,11 @@ impl Supervisor for MockSupervisor {
 
     /// The next scheduled command, if any; with none left, the run aborts.
     fn wait(&mut self) -> Option<SupervisorCommand> {
+        if let Some(named) = &self.named {
+            let (c, from) = named.recv().ok()?;
+            self.from = from;
+            return Some(c);
+        }
         match &self.feed {
             Some(feed) => feed.recv().ok(),
             None => self.commands.wait(),
@@ -148,9 +166,11 @@ impl Supervisor for MockSupervisor {
 
     /// The simulated supervisor confirms every checkpoint; a console's person is asked.
     fn checkpoint(&mut self, _request: &CheckpointRequest) -> Option<SupervisorCommand> {
-        match &self.feed {
-            Some(feed) if self.asks_at_checkpoints => loop {
-                match feed.recv().ok()? {
+        match &self.named {
+            Some(named) => loop {
+                let (c, from) = named.recv().ok()?;
+                self.from = from;
+                match c {
                     // A pause or resume answers nothing here; the arms already hold.
                     SupervisorCommand::Pause | SupervisorCommand::Resume => {}
                     c => return Some(c),

@@ -51,7 +51,7 @@ pub struct Hub {
     plan: Value,
     /// The explored state diagram's edges, once computed (off the engine's thread).
     diagram: OnceLock<Value>,
-    commands: Mutex<Sender<SupervisorCommand>>,
+    commands: Mutex<Sender<(SupervisorCommand, String)>>,
     refusals: Mutex<Sender<Refusal>>,
 }
 
@@ -121,8 +121,9 @@ impl Hub {
 
 /// What the engine's supervisor takes from the console.
 pub struct Feeds {
-    /// Commands from the viewer in control (and an e-stop from any viewer).
-    pub commands: Receiver<SupervisorCommand>,
+    /// Commands from the viewer in control (and an e-stop from any viewer), with who sent
+    /// them (`console viewer 3 (127.0.0.1:50412)`).
+    pub commands: Receiver<(SupervisorCommand, String)>,
     /// Commands refused, for the journal.
     pub refusals: Receiver<Refusal>,
 }
@@ -377,21 +378,21 @@ fn bearer(headers: &HeaderMap) -> Option<&str> {
 }
 
 /// Host, Origin and token: the refusal, journaled, if any fails.
-fn guard(hub: &Hub, headers: &HeaderMap, from: &str, what: &str) -> Result<(), Response> {
+fn guard(hub: &Hub, headers: &HeaderMap, from: &str, what: &str) -> Result<(), Box<Response>> {
     if let Some(why) = hub.check_origin(headers) {
         hub.refuse(from, what, &why);
-        return Err(refused(StatusCode::FORBIDDEN, &why));
+        return Err(Box::new(refused(StatusCode::FORBIDDEN, &why)));
     }
     match bearer(headers) {
         None => {
             let why = "no token (Authorization: Bearer <the token printed at start>)";
             hub.refuse(from, what, why);
-            Err(refused(StatusCode::UNAUTHORIZED, why))
+            Err(Box::new(refused(StatusCode::UNAUTHORIZED, why)))
         }
         Some(t) if !hub.token_ok(t) => {
             let why = "wrong token";
             hub.refuse(from, what, why);
-            Err(refused(StatusCode::UNAUTHORIZED, why))
+            Err(Box::new(refused(StatusCode::UNAUTHORIZED, why)))
         }
         Some(_) => Ok(()),
     }
@@ -418,7 +419,7 @@ async fn command(
         |b| b.command.clone(),
     );
     if let Err(r) = guard(&hub, &headers, &from, &what) {
-        return r;
+        return *r;
     }
     let body = match parsed {
         Ok(b) => b,
@@ -464,7 +465,7 @@ async fn command(
         .commands
         .lock()
         .unwrap_or_else(PoisonError::into_inner)
-        .send(cmd)
+        .send((cmd, from))
         .is_err()
     {
         return refused(StatusCode::CONFLICT, "the run has ended");
@@ -488,7 +489,7 @@ async fn control(
 ) -> Response {
     let from = format!("console {peer}");
     if let Err(r) = guard(&hub, &headers, &from, "take control") {
-        return r;
+        return *r;
     }
     let body: ControlBody = if body.is_empty() {
         ControlBody::default()
@@ -521,14 +522,18 @@ async fn stream(
     State(hub): State<Arc<Hub>>,
     ConnectInfo(peer): ConnectInfo<SocketAddr>,
     headers: HeaderMap,
-    ws: WebSocketUpgrade,
+    ws: Result<WebSocketUpgrade, axum::extract::ws::rejection::WebSocketUpgradeRejection>,
 ) -> Response {
     let from = format!("console {peer}");
+    // Checked first, whatever else the request gets wrong.
     if let Some(why) = hub.check_origin(&headers) {
         hub.refuse(&from, "watch", &why);
         return refused(StatusCode::FORBIDDEN, &why);
     }
-    ws.on_upgrade(move |socket| viewer(hub, socket, from))
+    match ws {
+        Ok(ws) => ws.on_upgrade(move |socket| viewer(hub, socket, from)),
+        Err(e) => e.into_response(),
+    }
 }
 
 async fn viewer(hub: Arc<Hub>, mut socket: WebSocket, from: String) {
