@@ -544,6 +544,10 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
                 Some(addr) => {
                     let plan = Arc::new(loaded.plan.clone());
                     let (console, feeds) = web::Console::start(addr, console_remote, &plan)?;
+                    if robot == RobotKind::Mock {
+                        *supervision.view.borrow_mut() =
+                            Some(console.mock_view(mock.camera.clone()));
+                    }
                     eprintln!(
                         "console: {} (the token after #token= guards every command; keep it \
                          to yourself)",
@@ -676,6 +680,9 @@ pub(crate) struct Supervision {
     /// The web console's commands and refusals (`--console`); taken by the run.
     #[cfg(feature = "console")]
     pub console: std::cell::RefCell<Option<ConsoleFeeds>>,
+    /// The web console's view of the mock's camera (`--console` on the mock).
+    #[cfg(feature = "console")]
+    pub view: std::cell::RefCell<Option<web::MockView>>,
     /// Where else each journal record goes as it is journaled (the web console's viewers).
     pub watch: std::cell::RefCell<Option<stitch_engine::JournalSink>>,
     /// Wraps the rig's arms and jaws before the run (a benchmark's watch on the holds).
@@ -879,6 +886,14 @@ pub(crate) fn run_mock(
             primitives.map_rig(|rig| {
                 tap.rig(rig, Some(Box::new(move || Some(truth.needle_truth().pose))))
             })
+        }
+        None => primitives,
+    };
+    #[cfg(feature = "console")]
+    let primitives = match supervision.view.borrow_mut().take() {
+        Some(view) => {
+            let watch = view.show(&world)?;
+            primitives.map_rig(|rig| watch.rig(rig))
         }
         None => primitives,
     };

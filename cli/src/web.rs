@@ -36,6 +36,22 @@ const APP_CSS: &str = include_str!("../web/app.css");
 const CSP: &str = "default-src 'none'; script-src 'self'; style-src 'self'; img-src 'self' blob:; \
                    connect-src 'self'; base-uri 'none'; form-action 'none'; frame-ancestors 'none'";
 
+/// The most camera frames a second the console makes, for all its viewers.
+const MAX_FRAME_HZ: f64 = 15.0;
+
+/// A camera frame for the page: the left view (JPEG) and what to draw over it, in its pixels.
+pub struct Frame {
+    /// The left image, JPEG.
+    pub jpeg: Vec<u8>,
+    /// `{"t_s", "width", "height", "needle": [[u, v], ...] | null, "confidence",
+    /// "estimate_age_s", "jaws": [{"arm", "tip": [u, v], "back": [u, v]}]}`.
+    pub overlay: Value,
+}
+
+/// Makes a frame when a viewer asks for one (off the engine's thread, changing nothing in
+/// the run); `None` when there is nothing to show.
+pub type FrameSource = Box<dyn FnMut() -> Option<Frame> + Send>;
+
 /// How long a viewer has to send the token after opening the stream.
 const TOKEN_WAIT: Duration = Duration::from_secs(5);
 
@@ -52,6 +68,12 @@ pub struct Hub {
     /// The explored state diagram's edges, once computed (off the engine's thread).
     diagram: OnceLock<Value>,
     commands: Mutex<Sender<(SupervisorCommand, String)>>,
+    /// Renders the left camera's view with its overlay, on request (one viewer at a time).
+    frames: Mutex<Option<FrameSource>>,
+    /// Whether the run will show a camera (frames may come a moment after the start).
+    camera: std::sync::atomic::AtomicBool,
+    /// When the last frame was made (frames are made at most [`MAX_FRAME_HZ`]).
+    last_frame: Mutex<Option<std::time::Instant>>,
     refusals: Mutex<Sender<Refusal>>,
 }
 
@@ -189,6 +211,9 @@ impl Console {
             plan: plan_json(plan),
             diagram: OnceLock::new(),
             commands: Mutex::new(commands),
+            frames: Mutex::new(None),
+            camera: std::sync::atomic::AtomicBool::new(false),
+            last_frame: Mutex::new(None),
             refusals: Mutex::new(refusals),
         });
         // The state diagram: the explorer's edges, computed off the engine's thread.
@@ -288,6 +313,24 @@ impl Drop for Console {
             let _ = t.join();
         }
     }
+}
+
+/// The next frame, at most [`MAX_FRAME_HZ`] for all viewers together (a blocking task).
+fn make_frame(hub: &Hub) -> Option<Frame> {
+    let mut source = hub.frames.lock().unwrap_or_else(PoisonError::into_inner);
+    let source = source.as_mut()?;
+    {
+        let mut last = hub
+            .last_frame
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
+        let period = Duration::from_secs_f64(1.0 / MAX_FRAME_HZ);
+        if let Some(wait) = last.map(|l| period.saturating_sub(l.elapsed())) {
+            std::thread::sleep(wait);
+        }
+        *last = Some(std::time::Instant::now());
+    }
+    source()
 }
 
 /// A per-run token: 128 bits from the operating system's generator.
@@ -568,12 +611,15 @@ async fn viewer(hub: Arc<Hub>, mut socket: WebSocket, from: String) {
 
 /// Send the plan, then every record and control change as they come, until the run ends or
 /// the viewer goes.
-async fn serve_viewer(hub: &Hub, socket: &mut WebSocket, id: u64) -> Result<(), axum::Error> {
-    let hello = json!({ "type": "hello", "viewer": id, "plan": hub.plan });
+async fn serve_viewer(hub: &Arc<Hub>, socket: &mut WebSocket, id: u64) -> Result<(), axum::Error> {
+    let cameras = hub.camera.load(std::sync::atomic::Ordering::Relaxed);
+    let hello = json!({ "type": "hello", "viewer": id, "plan": hub.plan, "camera": cameras });
     socket.send(Message::Text(hello.to_string().into())).await?;
     let mut changed = hub.changed.subscribe();
     // The control last said (`None`: not yet said).
     let (mut sent, mut control, mut diagram_sent) = (0usize, None::<Option<u64>>, false);
+    // The frame being made for this viewer, if any.
+    let mut making: Option<tokio::task::JoinHandle<Option<Frame>>> = None;
     loop {
         changed.borrow_and_update();
         let (batch, now_control, ended) = {
@@ -612,8 +658,194 @@ async fn serve_viewer(hub: &Hub, socket: &mut WebSocket, id: u64) -> Result<(), 
             r = changed.changed() => if r.is_err() { return Ok(()) },
             m = socket.recv() => match m {
                 None | Some(Err(_)) | Some(Ok(Message::Close(_))) => return Ok(()),
+                // The page asks for the next frame once it has drawn the last: one in flight.
+                Some(Ok(Message::Text(t))) if t.contains("\"frame\"") && making.is_none() => {
+                    making = Some(tokio::task::spawn_blocking({
+                        let hub = Arc::clone(hub);
+                        move || make_frame(&hub)
+                    }));
+                }
                 Some(Ok(_)) => {}
             },
+            made = async { making.as_mut().expect("guarded").await }, if making.is_some() => {
+                making = None;
+                match made.ok().flatten() {
+                    Some(f) => {
+                        let head = json!({ "type": "frame", "overlay": f.overlay });
+                        socket.send(Message::Text(head.to_string().into())).await?;
+                        socket.send(Message::Binary(f.jpeg.into())).await?;
+                    }
+                    None => {
+                        let none = json!({ "type": "no-frame" });
+                        socket.send(Message::Text(none.to_string().into())).await?;
+                    }
+                }
+            },
+        }
+    }
+}
+
+/// The last needle estimate the run's estimator gave, for the overlay.
+pub type LastEstimate = Arc<Mutex<Option<stitch_perception::NeedleEstimate>>>;
+
+/// The rig's estimator, telling `last` of every estimate it gives (and nothing else
+/// changed).
+struct Watched {
+    inner: Box<dyn stitch_perception::NeedleEstimator>,
+    last: LastEstimate,
+}
+
+impl stitch_perception::NeedleEstimator for Watched {
+    fn estimate_needle(
+        &mut self,
+    ) -> Result<stitch_perception::NeedleEstimate, stitch_perception::PerceptionError> {
+        let r = self.inner.estimate_needle();
+        self.note(&r);
+        r
+    }
+
+    fn estimate_needle_with(
+        &mut self,
+        hint: Option<&stitch_perception::NeedleHint>,
+    ) -> Result<stitch_perception::NeedleEstimate, stitch_perception::PerceptionError> {
+        let r = self.inner.estimate_needle_with(hint);
+        self.note(&r);
+        r
+    }
+}
+
+impl Watched {
+    fn note(
+        &self,
+        r: &Result<stitch_perception::NeedleEstimate, stitch_perception::PerceptionError>,
+    ) {
+        if let Ok(e) = r {
+            *self.last.lock().unwrap_or_else(PoisonError::into_inner) = Some(*e);
+        }
+    }
+}
+
+/// What the console needs to show the mock's camera: set before the run, used by it.
+pub struct MockView {
+    hub: Arc<Hub>,
+    camera: stitch_sim::CameraConfig,
+}
+
+impl Console {
+    /// The mock's camera for this console, drawn as `camera` (the mock's `[camera]`) sees.
+    pub fn mock_view(&self, camera: stitch_sim::CameraConfig) -> MockView {
+        self.hub
+            .camera
+            .store(true, std::sync::atomic::Ordering::Relaxed);
+        MockView {
+            hub: Arc::clone(&self.hub),
+            camera,
+        }
+    }
+}
+
+impl MockView {
+    /// Show `world` through the camera at half its resolution, with the estimates of the
+    /// rig's estimator and the jaws drawn over it. Gives what watches the rig's estimator.
+    pub fn show(self, world: &stitch_sim::MockDvrk) -> anyhow::Result<Watch> {
+        use rand_chacha::rand_core::SeedableRng;
+        let half = stitch_sim::CameraConfig {
+            width: self.camera.width / 2,
+            height: self.camera.height / 2,
+            focal_px: self.camera.focal_px / 2.0,
+            blur_px: self.camera.blur_px / 2.0,
+            ..self.camera.clone()
+        };
+        let renderer = stitch_sim::StereoRenderer::new(half, world.phantom_view())
+            .map_err(|e| anyhow::anyhow!("the console's camera: {e}"))?;
+        let last: LastEstimate = Arc::new(Mutex::new(None));
+        let needle = world.needle_model();
+        let watched = Arc::clone(&last);
+        let (world, clock) = (world.clone(), world.clock().clone());
+        // Its own generator for the image noise: the run's streams are never drawn from.
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0xc0_5013);
+        let source: FrameSource = Box::new(move || {
+            use stitch_robot::Clock;
+            let scene = world.peek_scene_view();
+            let pair = renderer.render(&scene, &stitch_robot::Pose::identity(), &mut rng);
+            let c = renderer.calibration();
+            let to_cam = c.camera_to_robot.inverse();
+            let px = |p: stitch_robot::Point| -> Option<[f64; 2]> {
+                let q = to_cam * p;
+                (q.z > 1e-4).then(|| {
+                    let u = c.fx * q.x / q.z + c.cx;
+                    let v = c.fy * q.y / q.z + c.cy;
+                    [(u * 10.0).round() / 10.0, (v * 10.0).round() / 10.0]
+                })
+            };
+            let now = clock.now();
+            let estimate = *last.lock().unwrap_or_else(PoisonError::into_inner);
+            let (arc, confidence, age) = match &estimate {
+                Some(e) => (
+                    (0..=24)
+                        .map(|i| needle.point_at(std::f64::consts::PI * f64::from(i) / 24.0))
+                        .filter_map(|p| px(e.pose * p))
+                        .collect::<Vec<_>>(),
+                    Some(e.confidence),
+                    Some(now.saturating_sub(e.stamp).as_secs_f64()),
+                ),
+                None => (Vec::new(), None, None),
+            };
+            let jaws: Vec<Value> = scene
+                .tools
+                .iter()
+                .zip(["PSM1", "PSM2"])
+                .filter_map(|(t, arm)| {
+                    let tip = px(t.pose * stitch_robot::Point::origin())?;
+                    let back = px(t.pose * stitch_robot::Point::new(0.0, 0.0, -0.01))?;
+                    Some(json!({ "arm": arm, "tip": tip, "back": back, "jaw_rad": t.jaw_rad }))
+                })
+                .collect();
+            let mut jpeg = Vec::new();
+            image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpeg, 80)
+                .encode(
+                    &pair.left.data,
+                    pair.left.width,
+                    pair.left.height,
+                    image::ExtendedColorType::Rgb8,
+                )
+                .ok()?;
+            Some(Frame {
+                jpeg,
+                overlay: json!({
+                    "t_s": now.as_secs_f64(),
+                    "width": pair.left.width,
+                    "height": pair.left.height,
+                    "needle": (!arc.is_empty()).then_some(arc),
+                    "confidence": confidence,
+                    "estimate_age_s": age,
+                    "jaws": jaws,
+                }),
+            })
+        });
+        *self
+            .hub
+            .frames
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner) = Some(source);
+        Ok(Watch { last: watched })
+    }
+}
+
+/// Watches a rig's needle estimator for the console's overlay.
+pub struct Watch {
+    last: LastEstimate,
+}
+
+impl Watch {
+    /// `rig` with its estimator watched (its estimates unchanged).
+    pub fn rig(self, rig: stitch_primitives::Rig) -> stitch_primitives::Rig {
+        stitch_primitives::Rig {
+            estimator: Box::new(Watched {
+                inner: rig.estimator,
+                last: self.last,
+            }),
+            ..rig
         }
     }
 }

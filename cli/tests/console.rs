@@ -270,8 +270,8 @@ fn commands_without_the_token_from_elsewhere_or_not_in_control_are_refused_and_j
     );
 }
 
-/// A viewer that watches half a mission and goes away: the journal is the one a run without
-/// a viewer writes, byte for byte.
+/// A viewer that watches half a mission, camera frames included, and goes away: the journal
+/// is the one a run without a console writes, byte for byte.
 #[test]
 fn a_viewer_connected_then_dropped_changes_nothing_in_the_journal() {
     let (with, without) = (tmp("console-viewer.jsonl"), tmp("console-none.jsonl"));
@@ -293,13 +293,31 @@ fn a_viewer_connected_then_dropped_changes_nothing_in_the_journal() {
         run.token
     )))
     .expect("the token");
-    let mut events = 0;
+    let (mut events, mut frames) = (0, 0);
     let mut saw_hello = false;
-    while events < 30 {
+    let next = tungstenite::Message::text(r#"{"type":"frame"}"#);
+    while events < 30 || frames < 3 {
         let m = ws.read().expect("a message");
+        if let tungstenite::Message::Binary(jpeg) = &m {
+            assert!(jpeg.starts_with(&[0xff, 0xd8]), "a JPEG frame");
+            frames += 1;
+            ws.send(next.clone()).expect("the next frame");
+            continue;
+        }
         let v: Value = serde_json::from_str(m.to_text().expect("text")).expect("json");
         match v["type"].as_str() {
-            Some("hello") => saw_hello = true,
+            Some("hello") => {
+                saw_hello = true;
+                assert_eq!(v["camera"], true, "the mock's camera is shown");
+                ws.send(next.clone()).expect("a frame");
+            }
+            Some("frame") => assert!(
+                v["overlay"]["jaws"]
+                    .as_array()
+                    .is_some_and(|j| j.len() == 2)
+            ),
+            // Not drawn yet (the run is starting): ask again.
+            Some("no-frame") => ws.send(next.clone()).expect("a frame"),
             Some("events") => events += v["events"].as_array().map_or(0, Vec::len),
             Some("refused") => panic!("refused: {v}"),
             _ => {}

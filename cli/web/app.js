@@ -237,12 +237,54 @@ async function takeControl() {
   }
 }
 
+// --- the camera: one frame in flight; the next asked for once this one is drawn -----------
+let overlay = null;
+let frames = [];
+function askFrame(ws) {
+  if (ws.readyState === WebSocket.OPEN && !ended) ws.send(JSON.stringify({ type: "frame" }));
+}
+
+async function drawFrame(ws, blob) {
+  const o = overlay;
+  try {
+    const img = await createImageBitmap(blob);
+    const canvas = $("camera");
+    if (canvas.width !== img.width) { canvas.width = img.width; canvas.height = img.height; }
+    const g = canvas.getContext("2d");
+    g.drawImage(img, 0, 0);
+    if (o && o.needle) {
+      g.strokeStyle = "#00c853"; g.lineWidth = 2.5;
+      g.beginPath();
+      o.needle.forEach(([u, v], i) => (i ? g.lineTo(u, v) : g.moveTo(u, v)));
+      g.stroke();
+    }
+    for (const j of (o && o.jaws) || []) {
+      g.strokeStyle = "#2979ff"; g.fillStyle = "#2979ff"; g.lineWidth = 2;
+      g.beginPath(); g.moveTo(...j.back); g.lineTo(...j.tip); g.stroke();
+      g.beginPath(); g.arc(j.tip[0], j.tip[1], 4, 0, 2 * Math.PI); g.fill();
+      g.font = "12px sans-serif"; g.fillText(j.arm, j.tip[0] + 6, j.tip[1] - 6);
+    }
+    const now = performance.now();
+    frames.push(now);
+    frames = frames.filter((t) => now - t < 2000);
+    $("fps").textContent = `${(frames.length / 2).toFixed(1)} frames/s, t ${o ? o.t_s.toFixed(1) : "?"} s`;
+    document.body.dataset.frames = String((Number(document.body.dataset.frames) || 0) + 1);
+    $("estimate").textContent = o && o.confidence !== null
+      ? `last estimate: confidence ${o.confidence.toFixed(2)}, ${o.estimate_age_s.toFixed(1)} s old`
+      : "no estimate yet";
+  } finally {
+    askFrame(ws);
+  }
+}
+
 // --- the stream ------------------------------------------------------------------------------
 function connect() {
   const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/api/stream`);
   const link = $("link");
+  ws.binaryType = "blob";
   ws.onopen = () => ws.send(JSON.stringify({ token }));
   ws.onmessage = (m) => {
+    if (typeof m.data !== "string") { drawFrame(ws, m.data); return; }
     const msg = JSON.parse(m.data);
     switch (msg.type) {
       case "hello":
@@ -250,7 +292,10 @@ function connect() {
         $("mission").textContent = `${plan.name} — ${plan.file}`;
         drawPlan();
         link.textContent = `live (viewer ${viewer})`; link.className = "link live";
+        if (msg.camera) { $("camera-panel").hidden = false; askFrame(ws); }
         break;
+      case "frame": overlay = msg.overlay; break;
+      case "no-frame": setTimeout(() => askFrame(ws), 500); break;
       case "refused":
         say(`the console refused this page: ${msg.why} (open the URL printed at start, with its #token=)`, true);
         link.textContent = "refused"; link.className = "link lost";

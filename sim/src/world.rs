@@ -599,17 +599,14 @@ impl MockDvrk {
     /// What the camera sees now: the needle (unless it fell out of view), the free thread
     /// and both tools, from the truth.
     pub fn scene_view(&self) -> crate::SceneView {
-        let s = self.lock();
-        crate::SceneView {
-            needle: (!s.needle.dropped).then_some((s.needle_model, s.needle.pose)),
-            thread: s.thread.polyline.clone(),
-            tools: (0..2)
-                .map(|i| crate::ToolView {
-                    pose: s.psms[i].setpoint,
-                    jaw_rad: s.psms[i].jaw_rad,
-                })
-                .collect(),
-        }
+        scene_of(&self.lock())
+    }
+
+    /// The same as the world last settled, without settling it to now and without a draw:
+    /// for a viewer on another thread (the web console), which must change nothing in the run.
+    /// At most one motion slice old.
+    pub fn peek_scene_view(&self) -> crate::SceneView {
+        scene_of(&self.state.lock().unwrap_or_else(PoisonError::into_inner))
     }
 
     /// The static phantom as the camera draws it.
@@ -1110,6 +1107,21 @@ impl Jaw for MockJaw {
             id,
             jaw: true,
         })))
+    }
+}
+
+/// What the camera sees in `s`: the needle (unless it fell out of view), the free thread and
+/// both tools, from the truth.
+fn scene_of(s: &State) -> crate::SceneView {
+    crate::SceneView {
+        needle: (!s.needle.dropped).then_some((s.needle_model, s.needle.pose)),
+        thread: s.thread.polyline.clone(),
+        tools: (0..2)
+            .map(|i| crate::ToolView {
+                pose: s.psms[i].setpoint,
+                jaw_rad: s.psms[i].jaw_rad,
+            })
+            .collect(),
     }
 }
 

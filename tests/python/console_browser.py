@@ -3,7 +3,7 @@
 Usage: console_browser.py URL SCREENSHOT CHROMIUM CHROMEDRIVER
 
 Opens the console of a running `stitch run --console --pace 1.0`, sees the state change
-live, takes control, pauses mid-step, checks the page says paused, saves a screenshot,
+live and the camera's frames drawn, takes control, pauses mid-step, checks the page says paused, saves a screenshot,
 resumes, aborts and sees the run end aborted. Exits non-zero with the reason otherwise.
 """
 
@@ -18,7 +18,7 @@ from selenium.webdriver.common.by import By
 url, shot, chromium, chromedriver = sys.argv[1:5]
 
 
-def wait_for(what, check, limit=30.0):
+def wait_for(what, check, limit=60.0):
     end = time.monotonic() + limit
     while time.monotonic() < end:
         got = check()
@@ -54,11 +54,17 @@ try:
     # Live: the state changes while the page is open.
     second = wait_for("the state to change", lambda: state() if state() != first else None)
     print("then:", second)
+    # The camera: frames drawn, one in flight, the next asked for when one is drawn.
+    frames = lambda: int(driver.find_element(By.TAG_NAME, "body").get_attribute("data-frames") or 0)
+    wait_for("three camera frames", lambda: frames() >= 3, limit=60)
+    print("camera:", driver.find_element(By.ID, "fps").text)
     driver.find_element(By.ID, "take-control").click()
     wait_for("control", lambda: driver.find_element(By.TAG_NAME, "body").get_attribute("data-control") == "mine")
     # Mid-step: a moving step's state (not between steps, not paused).
     moving = ("inserting", "sweeping", "extracting", "cinching", "handing_over", "correcting")
-    wait_for("a step under way", lambda: state().startswith(moving))
+    # Just after a step starts (a step lasts seconds at real time), so the pause lands in it.
+    before = state()
+    wait_for("the next step to start", lambda: state() != before and state().startswith(moving), limit=90)
     driver.find_element(By.ID, "btn-pause").click()
     paused = wait_for("paused mid-step", lambda: state() if state().startswith("paused") else None)
     print("after pause:", paused)
