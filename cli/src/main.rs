@@ -200,6 +200,20 @@ enum Command {
         #[command(subcommand)]
         command: record::JournalCommand,
     },
+    /// Play a recorded run (`stitch run --journal FILE.mcap`) in the web console: its plan,
+    /// states, throws, events and camera frames, with a timeline to scrub (see
+    /// docs/console.md). Serves until interrupted (Ctrl-C).
+    #[cfg(feature = "console")]
+    Console {
+        /// The recording (MCAP), finished or not.
+        file: PathBuf,
+        /// Where to serve the page [port 0: any free one].
+        #[arg(long, default_value = "127.0.0.1:8080")]
+        addr: std::net::SocketAddr,
+        /// Let it listen on an address other than loopback.
+        #[arg(long)]
+        remote: bool,
+    },
     /// Run a recorded mock or scripted run again from its own recorded plan, configuration
     /// and seed, and say "identical" or where it first diverges (see docs/journal.md).
     #[command(after_help = EXIT_CODES)]
@@ -407,6 +421,22 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
             } else {
                 exit::INVALID_PLAN
             })
+        }
+        #[cfg(feature = "console")]
+        Command::Console { file, addr, remote } => {
+            let playback = replay::playback(&file)?;
+            let complete = playback.complete;
+            let console = web::Console::replay(addr, remote, playback)?;
+            if !complete {
+                eprintln!(
+                    "{}: unfinished (a crash or a kill?): played up to its last closed chunk",
+                    file.display()
+                );
+            }
+            eprintln!("console: {} (Ctrl-C to stop)", console.url());
+            loop {
+                std::thread::park();
+            }
         }
         Command::Run {
             plan,

@@ -774,3 +774,53 @@ fn what_if(rec: &Recording, other: &Path) -> anyhow::Result<u8> {
         DIVERGED
     })
 }
+
+#[cfg(feature = "console")]
+/// What `stitch console FILE` plays: a recording's journal, its plan and its left camera's
+/// frames (log time ns, JPEG), if it recorded any.
+pub(crate) struct Playback {
+    /// The engine's journal.
+    pub records: Vec<Record>,
+    /// The plan it ran, evaluated again from the recorded script.
+    pub plan: stitch_engine::Plan,
+    /// The left camera's recorded frames, in time order.
+    pub frames: Vec<(u64, Vec<u8>)>,
+    /// Whether the file was finished (else read up to its last closed chunk).
+    pub complete: bool,
+}
+
+#[cfg(feature = "console")]
+/// Read `file` for playing it in the console.
+pub(crate) fn playback(file: &Path) -> anyhow::Result<Playback> {
+    let rec = Recording::read(file)?;
+    let plan_file = rec.get("plan_file")?.to_string();
+    let plan_text = rec
+        .attachment("plan.rhai")?
+        .with_context(|| format!("{}: no plan.rhai attachment", file.display()))?;
+    let wound: WoundSpec = serde_json::from_str(rec.get("wound")?)
+        .with_context(|| format!("{}: the recorded wound", file.display()))?;
+    let plan = load(&plan_file, &plan_text, &wound)?.plan;
+    let left: Vec<u16> = rec
+        .got
+        .channels
+        .iter()
+        .filter(|(_, c)| c.topic == stitch_recorder::FRAME_TOPICS[0])
+        .map(|(id, _)| *id)
+        .collect();
+    let mut frames = Vec::new();
+    for (channel, t, bytes) in &rec.got.messages {
+        if left.contains(channel) {
+            let image: stitch_recorder::CompressedImage =
+                stitch_dvrk::decode(bytes, stitch_recorder::COMPRESSED_IMAGE.name)
+                    .map_err(|e| anyhow::anyhow!("{}: a left camera frame: {e}", file.display()))?;
+            frames.push((*t, image.data));
+        }
+    }
+    frames.sort_by_key(|(t, _)| *t);
+    Ok(Playback {
+        records: rec.got.records.clone(),
+        plan,
+        frames,
+        complete: rec.got.complete,
+    })
+}

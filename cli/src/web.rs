@@ -39,6 +39,9 @@ const CSP: &str = "default-src 'none'; script-src 'self'; style-src 'self'; img-
 /// The most camera frames a second the console makes, for all its viewers.
 const MAX_FRAME_HZ: f64 = 15.0;
 
+/// A recorded frame: its log time (ns) and JPEG.
+type RecordedFrame = (u64, Vec<u8>);
+
 /// A camera frame for the page: the left view (JPEG) and what to draw over it, in its pixels.
 pub struct Frame {
     /// The left image, JPEG.
@@ -70,6 +73,10 @@ pub struct Hub {
     commands: Mutex<Sender<(SupervisorCommand, String)>>,
     /// Renders the left camera's view with its overlay, on request (one viewer at a time).
     frames: Mutex<Option<FrameSource>>,
+    /// Playing a recording (`stitch console FILE`): its length and state, for the page; its
+    /// left camera's frames (log time ns, JPEG).
+    replay: Option<Value>,
+    recorded_frames: Vec<RecordedFrame>,
     /// Whether the run will show a camera (frames may come a moment after the start).
     camera: std::sync::atomic::AtomicBool,
     /// When the last frame was made (frames are made at most [`MAX_FRAME_HZ`]).
@@ -174,6 +181,36 @@ impl Console {
         remote: bool,
         plan: &Arc<Plan>,
     ) -> anyhow::Result<(Self, Feeds)> {
+        Self::open(addr, remote, plan, None)
+    }
+
+    /// Serve a recorded run (`stitch console FILE`): its journal and camera frames, with a
+    /// timeline to scrub; no commands.
+    pub fn replay(
+        addr: SocketAddr,
+        remote: bool,
+        playback: crate::replay::Playback,
+    ) -> anyhow::Result<Self> {
+        let plan = Arc::new(playback.plan);
+        let end_s = playback.records.last().map_or(0.0, |r| r.t_s);
+        let info = json!({ "duration_s": end_s, "complete": playback.complete, "frames": playback.frames.len() });
+        let (console, _) = Self::open(addr, remote, &plan, Some((info, playback.frames)))?;
+        {
+            let mut state = console.hub.lock();
+            for r in &playback.records {
+                state.events.push(record_json(r));
+            }
+        }
+        console.hub.bump();
+        Ok(console)
+    }
+
+    fn open(
+        addr: SocketAddr,
+        remote: bool,
+        plan: &Arc<Plan>,
+        replay: Option<(Value, Vec<RecordedFrame>)>,
+    ) -> anyhow::Result<(Self, Feeds)> {
         if !addr.ip().is_loopback() && !remote {
             anyhow::bail!(
                 "--console {addr}: not a loopback address; anyone who can reach it could watch \
@@ -212,7 +249,11 @@ impl Console {
             diagram: OnceLock::new(),
             commands: Mutex::new(commands),
             frames: Mutex::new(None),
-            camera: std::sync::atomic::AtomicBool::new(false),
+            camera: std::sync::atomic::AtomicBool::new(
+                replay.as_ref().is_some_and(|(_, f)| !f.is_empty()),
+            ),
+            recorded_frames: replay.as_ref().map(|(_, f)| f.clone()).unwrap_or_default(),
+            replay: replay.map(|(info, _)| info),
             last_frame: Mutex::new(None),
             refusals: Mutex::new(refusals),
         });
@@ -288,10 +329,7 @@ impl Console {
     pub fn sink(&self) -> JournalSink {
         let hub = Arc::clone(&self.hub);
         Box::new(move |r: &Record| {
-            let text: Arc<str> = serde_json::to_string(r)
-                .unwrap_or_else(|e| format!("{{\"error\":\"record {}: {e}\"}}", r.seq))
-                .into();
-            hub.lock().events.push(text);
+            hub.lock().events.push(record_json(r));
             hub.bump();
         })
     }
@@ -331,6 +369,25 @@ fn make_frame(hub: &Hub) -> Option<Frame> {
         *last = Some(std::time::Instant::now());
     }
     source()
+}
+
+/// A journal record as the page gets it.
+fn record_json(r: &Record) -> Arc<str> {
+    serde_json::to_string(r)
+        .unwrap_or_else(|e| format!("{{\"error\":\"record {}: {e}\"}}", r.seq))
+        .into()
+}
+
+/// A recorded run's frame at `t_s` (the last one at or before it; the first one before
+/// any), with no overlay.
+fn recorded_frame(frames: &[RecordedFrame], t_s: f64) -> Option<Frame> {
+    let t = (t_s.max(0.0) * 1e9) as u64;
+    let i = frames.partition_point(|(ft, _)| *ft <= t).saturating_sub(1);
+    let (ft, jpeg) = frames.get(i)?;
+    Some(Frame {
+        jpeg: jpeg.clone(),
+        overlay: json!({ "t_s": *ft as f64 * 1e-9, "needle": null, "jaws": [] }),
+    })
 }
 
 /// A per-run token: 128 bits from the operating system's generator.
@@ -486,6 +543,9 @@ async fn command(
         Some(v) => format!("console viewer {v} ({peer})"),
         None => from,
     };
+    if hub.replay.is_some() {
+        return refused(StatusCode::CONFLICT, "a recorded run takes no commands");
+    }
     {
         let state = hub.lock();
         if state.ended {
@@ -555,6 +615,16 @@ async fn control(
     (StatusCode::OK, axum::Json(json!({ "control": viewer }))).into_response()
 }
 
+/// A viewer's ask for the next frame (`{"type": "frame"}`; when playing a recording, at
+/// `t_s` on its timeline).
+#[derive(Deserialize)]
+struct FrameAsk {
+    #[serde(rename = "type")]
+    kind: String,
+    #[serde(default)]
+    t_s: Option<f64>,
+}
+
 #[derive(Deserialize)]
 struct Hello {
     token: String,
@@ -613,7 +683,13 @@ async fn viewer(hub: Arc<Hub>, mut socket: WebSocket, from: String) {
 /// the viewer goes.
 async fn serve_viewer(hub: &Arc<Hub>, socket: &mut WebSocket, id: u64) -> Result<(), axum::Error> {
     let cameras = hub.camera.load(std::sync::atomic::Ordering::Relaxed);
-    let hello = json!({ "type": "hello", "viewer": id, "plan": hub.plan, "camera": cameras });
+    let hello = json!({
+        "type": "hello",
+        "viewer": id,
+        "plan": hub.plan,
+        "camera": cameras,
+        "replay": hub.replay,
+    });
     socket.send(Message::Text(hello.to_string().into())).await?;
     let mut changed = hub.changed.subscribe();
     // The control last said (`None`: not yet said).
@@ -659,11 +735,20 @@ async fn serve_viewer(hub: &Arc<Hub>, socket: &mut WebSocket, id: u64) -> Result
             m = socket.recv() => match m {
                 None | Some(Err(_)) | Some(Ok(Message::Close(_))) => return Ok(()),
                 // The page asks for the next frame once it has drawn the last: one in flight.
-                Some(Ok(Message::Text(t))) if t.contains("\"frame\"") && making.is_none() => {
-                    making = Some(tokio::task::spawn_blocking({
-                        let hub = Arc::clone(hub);
-                        move || make_frame(&hub)
-                    }));
+                Some(Ok(Message::Text(t))) if making.is_none() => {
+                    if let Ok(ask) = serde_json::from_str::<FrameAsk>(&t) {
+                        if ask.kind == "frame" {
+                            making = Some(tokio::task::spawn_blocking({
+                                let hub = Arc::clone(hub);
+                                move || match ask.t_s {
+                                    Some(t) if hub.replay.is_some() => {
+                                        recorded_frame(&hub.recorded_frames, t)
+                                    }
+                                    _ => make_frame(&hub),
+                                }
+                            }));
+                        }
+                    }
                 }
                 Some(Ok(_)) => {}
             },

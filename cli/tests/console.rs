@@ -20,10 +20,12 @@ struct Run {
 
 impl Run {
     fn start(args: &[&str]) -> Self {
+        Self::spawn(&[&["run"], args, &["--console", "127.0.0.1:0"]].concat())
+    }
+
+    fn spawn(args: &[&str]) -> Self {
         let mut child = Command::new(env!("CARGO_BIN_EXE_stitch"))
-            .arg("run")
             .args(args)
-            .args(["--console", "127.0.0.1:0"])
             .current_dir(root())
             .stdout(Stdio::null())
             .stderr(Stdio::piped())
@@ -437,4 +439,68 @@ fn the_page_in_a_real_browser_pauses_resumes_and_aborts_a_mission() {
         png.starts_with(b"\x89PNG") && png.len() > 10_000,
         "a screenshot of the page"
     );
+}
+
+/// `stitch console FILE.mcap`: the recorded run's plan and every record of its journal, its
+/// length for the timeline; no commands.
+#[test]
+fn a_recording_plays_in_the_console_with_its_whole_journal_and_no_commands() {
+    let file = tmp("console-recorded.mcap");
+    let status = Command::new(env!("CARGO_BIN_EXE_stitch"))
+        .args(["run", "scripts/stitch.rhai", "--seed", "2", "--journal"])
+        .arg(&file)
+        .current_dir(root())
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .status()
+        .expect("stitch run");
+    assert!(status.code().is_some());
+    let out = Command::new(env!("CARGO_BIN_EXE_stitch"))
+        .args(["journal", "export", "--jsonl"])
+        .arg(&file)
+        .output()
+        .expect("stitch journal export");
+    let exported: Vec<Value> = String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .map(|l| serde_json::from_str(l).expect("json"))
+        .collect();
+    assert!(exported.len() > 20);
+    let run = Run::spawn(&[
+        "console",
+        file.to_str().expect("path"),
+        "--addr",
+        "127.0.0.1:0",
+    ]);
+    let (mut ws, _) =
+        tungstenite::connect(format!("ws://{}/api/stream", run.addr)).expect("the stream");
+    ws.send(tungstenite::Message::text(format!(
+        r#"{{"token":"{}"}}"#,
+        run.token
+    )))
+    .expect("the token");
+    let mut events = Vec::new();
+    while events.len() < exported.len() {
+        let m = ws.read().expect("a message");
+        let v: Value = serde_json::from_str(m.to_text().expect("text")).expect("json");
+        match v["type"].as_str() {
+            Some("hello") => {
+                assert_eq!(v["plan"]["name"], "STITCH");
+                let end = exported.last().expect("records")["t_s"].as_f64();
+                assert_eq!(v["replay"]["duration_s"].as_f64(), end);
+                assert_eq!(v["replay"]["complete"], true);
+            }
+            Some("events") => events.extend(v["events"].as_array().expect("events").clone()),
+            _ => {}
+        }
+    }
+    assert_eq!(events, exported, "every record, in order");
+    let (got, body) = request(
+        &run.addr,
+        "POST",
+        "/api/command",
+        &[("Authorization", &format!("Bearer {}", run.token))],
+        r#"{"command":"pause","viewer":1}"#,
+    );
+    assert_eq!(got, 409, "{body}");
+    assert!(body.contains("a recorded run takes no commands"), "{body}");
 }

@@ -16,6 +16,9 @@ let used = 0;
 let current = null;     // [throw, step] of the attempt under way
 const throws = [];      // per throw: {steps: [], retries, entry, exit, thread}
 const done = new Map(); // "t:s" -> "ok" | "failed"
+const allEvents = [];   // every record received
+let replay = null;      // a recording's {duration_s, complete, frames}, when playing one
+let at = 0;             // the time shown when playing a recording, s
 
 function el(tag, attrs, text) {
   const e = document.createElement(tag);
@@ -191,6 +194,20 @@ function onRecord(r) {
   if (stick) log.scrollTop = log.scrollHeight;
 }
 
+// A recording: the run as it stood at `t` (every record up to it, again).
+function rebuild(t) {
+  at = t;
+  stateName = "ready"; current = null; used = 0; done.clear();
+  $("events").replaceChildren();
+  drawPlan();
+  for (const r of allEvents) if (r.t_s <= t) onRecord(r);
+  $("scrub").value = String(t);
+  $("at").textContent = `${t.toFixed(1)} s of ${replay.duration_s.toFixed(1)} s`;
+  $("clock").textContent = t.toFixed(1) + " s";
+  if (ws && !inFlight) askFrame(ws);
+  refresh();
+}
+
 function refresh() {
   $("state").textContent = stateName;
   document.body.dataset.state = stateName;
@@ -240,8 +257,20 @@ async function takeControl() {
 // --- the camera: one frame in flight; the next asked for once this one is drawn -----------
 let overlay = null;
 let frames = [];
+let inFlight = false;
+let askedAt = null;
+let ws = null;
 function askFrame(ws) {
-  if (ws.readyState === WebSocket.OPEN && !ended) ws.send(JSON.stringify({ type: "frame" }));
+  if (ws.readyState !== WebSocket.OPEN || inFlight || $("camera-panel").hidden) return;
+  if (replay) {
+    if (askedAt === at) return;
+    askedAt = at;
+    inFlight = true;
+    ws.send(JSON.stringify({ type: "frame", t_s: at }));
+  } else if (!ended) {
+    inFlight = true;
+    ws.send(JSON.stringify({ type: "frame" }));
+  }
 }
 
 async function drawFrame(ws, blob) {
@@ -269,17 +298,18 @@ async function drawFrame(ws, blob) {
     frames = frames.filter((t) => now - t < 2000);
     $("fps").textContent = `${(frames.length / 2).toFixed(1)} frames/s, t ${o ? o.t_s.toFixed(1) : "?"} s`;
     document.body.dataset.frames = String((Number(document.body.dataset.frames) || 0) + 1);
-    $("estimate").textContent = o && o.confidence !== null
+    $("estimate").textContent = replay ? "recorded frame (no overlay)" : o && o.confidence !== null
       ? `last estimate: confidence ${o.confidence.toFixed(2)}, ${o.estimate_age_s.toFixed(1)} s old`
       : "no estimate yet";
   } finally {
+    inFlight = false;
     askFrame(ws);
   }
 }
 
 // --- the stream ------------------------------------------------------------------------------
 function connect() {
-  const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/api/stream`);
+  ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/api/stream`);
   const link = $("link");
   ws.binaryType = "blob";
   ws.onopen = () => ws.send(JSON.stringify({ token }));
@@ -292,25 +322,39 @@ function connect() {
         $("mission").textContent = `${plan.name} — ${plan.file}`;
         drawPlan();
         link.textContent = `live (viewer ${viewer})`; link.className = "link live";
+        replay = msg.replay;
+        if (replay) {
+          $("timeline").hidden = false; $("controls").hidden = true;
+          $("scrub").max = String(replay.duration_s);
+          link.textContent = replay.complete ? "recording" : "recording (unfinished)";
+          link.className = "link ended";
+        }
         if (msg.camera) { $("camera-panel").hidden = false; askFrame(ws); }
         break;
       case "frame": overlay = msg.overlay; break;
-      case "no-frame": setTimeout(() => askFrame(ws), 500); break;
+      case "no-frame": inFlight = false; setTimeout(() => askFrame(ws), 500); break;
       case "refused":
         say(`the console refused this page: ${msg.why} (open the URL printed at start, with its #token=)`, true);
         link.textContent = "refused"; link.className = "link lost";
         break;
       case "control": inControl = msg.viewer; break;
       case "diagram": drawDiagram(msg.edges); break;
-      case "events": for (const r of msg.events) onRecord(r); break;
+      case "events":
+        for (const r of msg.events) {
+          allEvents.push(r);
+          if (!replay) onRecord(r);
+        }
+        if (replay) rebuild(at);
+        break;
       case "ended":
+        if (replay) break;
         ended = true; link.textContent = "run ended"; link.className = "link ended";
         break;
     }
     refresh();
   };
   ws.onclose = () => {
-    if (!ended && link.className !== "link lost") {
+    if (!ended && !replay && link.className !== "link lost") {
       ended = true; link.textContent = "connection lost"; link.className = "link lost";
       refresh();
     }
@@ -320,6 +364,18 @@ function connect() {
 document.addEventListener("DOMContentLoaded", () => {
   document.querySelectorAll("button[data-command]").forEach((b) => b.addEventListener("click", () => command(b.dataset.command)));
   $("take-control").addEventListener("click", takeControl);
+  $("scrub").addEventListener("input", () => rebuild(Number($("scrub").value)));
+  let playing = null;
+  $("play").addEventListener("click", () => {
+    if (playing) { clearInterval(playing); playing = null; $("play").textContent = "Play"; return; }
+    if (at >= replay.duration_s) at = 0;
+    $("play").textContent = "Pause";
+    playing = setInterval(() => {
+      const t = Math.min(replay.duration_s, at + 0.1 * Number($("speed").value));
+      rebuild(t);
+      if (t >= replay.duration_s) { clearInterval(playing); playing = null; $("play").textContent = "Play"; }
+    }, 100);
+  });
   refresh();
   connect();
 });

@@ -6,12 +6,12 @@ mod tap;
 mod write;
 
 pub use msgs::{
-    CHANNELS, Channel, CompressedImage, Event, Log, MsgType, NeedleEstimate, Qos, StepEnd,
-    Transition, schema_text,
+    CHANNELS, COMPRESSED_IMAGE, Channel, CompressedImage, Event, Log, MsgType, NeedleEstimate, Qos,
+    StepEnd, Transition, schema_text,
 };
 pub use read::{Recorded, read, read_bytes, recover, rewrite, to_jsonl};
 pub use tap::{FRAME, Tap, Truth};
-pub use write::{MAX_FRAME_QUEUE_BYTES, Recorder, RecorderOptions, RunInfo, Stats};
+pub use write::{FRAME_TOPICS, MAX_FRAME_QUEUE_BYTES, Recorder, RecorderOptions, RunInfo, Stats};
 
 /// What can go wrong recording or reading a run.
 #[derive(Debug, thiserror::Error)]
