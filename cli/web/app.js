@@ -59,7 +59,15 @@ function lightPlan() {
   }
   if (current) {
     const li = $(`op-${current[0]}-${current[1]}`);
-    if (li) { li.classList.add("current"); li.scrollIntoView({ block: "nearest" }); }
+    if (li) {
+      li.classList.add("current");
+      // Scroll the plan's own box only, never the page.
+      const box = $("plan");
+      const top = li.offsetTop; // #plan is positioned: its own offset parent
+      if (top < box.scrollTop || top + li.offsetHeight > box.scrollTop + box.clientHeight) {
+        box.scrollTop = Math.max(0, top - box.clientHeight / 3);
+      }
+    }
   }
 }
 

@@ -39,7 +39,7 @@ for flag in (
     "--disable-background-networking",
     "--disable-component-update",
     "--disable-sync",
-    "--window-size=1400,1000",
+    "--window-size=1400,1250",
     f"--user-data-dir={tempfile.mkdtemp()}",
 ):
     options.add_argument(flag)
