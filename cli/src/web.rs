@@ -243,7 +243,7 @@ impl Console {
         let hub = Arc::new(Hub {
             state: Mutex::new(HubState::default()),
             changed: watch::channel(0).0,
-            token: token(),
+            token: token()?,
             hosts,
             plan: plan_json(plan),
             diagram: OnceLock::new(),
@@ -390,18 +390,15 @@ fn recorded_frame(frames: &[RecordedFrame], t_s: f64) -> Option<Frame> {
     })
 }
 
-/// A per-run token: 128 bits from the operating system's generator.
-fn token() -> String {
+/// A per-run token: 128 bits from the operating system's generator (no console without it:
+/// a guessable token guards nothing).
+fn token() -> anyhow::Result<String> {
     use rand::TryRngCore;
     let mut bytes = [0u8; 16];
-    if rand::rngs::OsRng.try_fill_bytes(&mut bytes).is_err() {
-        // No OS randomness: refuse to guard with a guessable token.
-        #[allow(clippy::panic)]
-        {
-            panic!("the console needs the operating system's random generator for its token");
-        }
-    }
-    bytes.iter().map(|b| format!("{b:02x}")).collect()
+    rand::rngs::OsRng.try_fill_bytes(&mut bytes).map_err(|e| {
+        anyhow::anyhow!("the console's token: no random bytes from the system: {e}")
+    })?;
+    Ok(bytes.iter().map(|b| format!("{b:02x}")).collect())
 }
 
 /// The plan as the page draws it: each throw's program, one line per operation.
