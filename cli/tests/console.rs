@@ -208,6 +208,39 @@ fn commands_without_the_token_from_elsewhere_or_not_in_control_are_refused_and_j
     assert_eq!(got, 200, "{body}");
     let v: Value = serde_json::from_str(&body).expect("json");
     let viewer = v["control"].as_u64().expect("a viewer id");
+    // Another viewer takes control: the first one's commands are refused, until it takes
+    // control back; an e-stop never is (not sent here: it would end the run).
+    let (_, body) = request(
+        &addr,
+        "POST",
+        "/api/control",
+        &[("Authorization", &bearer)],
+        "",
+    );
+    let other = serde_json::from_str::<Value>(&body).expect("json")["control"]
+        .as_u64()
+        .expect("a viewer id");
+    assert_ne!(other, viewer);
+    let (got, body) = request(
+        &addr,
+        "POST",
+        "/api/command",
+        &[("Authorization", &bearer)],
+        &format!(r#"{{"command":"pause","viewer":{viewer}}}"#),
+    );
+    assert_eq!(got, 409, "{body}");
+    assert!(
+        body.contains(&format!("viewer {other} is in control")),
+        "{body}"
+    );
+    let (got, _) = request(
+        &addr,
+        "POST",
+        "/api/control",
+        &[("Authorization", &bearer)],
+        &format!(r#"{{"viewer":{viewer}}}"#),
+    );
+    assert_eq!(got, 200);
     for c in ["pause", "abort"] {
         let (got, body) = request(
             &addr,
@@ -229,7 +262,7 @@ fn commands_without_the_token_from_elsewhere_or_not_in_control_are_refused_and_j
         .iter()
         .map(|r| r["why"].as_str().unwrap_or(""))
         .collect();
-    assert_eq!(refused.len(), 7, "every refusal journaled: {whys:?}");
+    assert_eq!(refused.len(), 8, "every refusal journaled: {whys:?}");
     for (i, part) in [
         "no token",
         "wrong token",
@@ -238,6 +271,7 @@ fn commands_without_the_token_from_elsewhere_or_not_in_control_are_refused_and_j
         "no viewer is in control",
         "Origin",
         "unknown command",
+        "is in control",
     ]
     .iter()
     .enumerate()
@@ -246,13 +280,17 @@ fn commands_without_the_token_from_elsewhere_or_not_in_control_are_refused_and_j
     }
     assert_eq!(refused[5]["command"], "watch");
     assert_eq!(refused[6]["command"], "dance");
-    assert!(refused.iter().all(|r| {
-        r["from"]
-            .as_str()
-            .unwrap_or("")
-            .starts_with("console 127.0.0.1:")
-    }));
     let from = format!("console viewer {viewer} ");
+    for (i, r) in refused.iter().enumerate() {
+        let who = r["from"].as_str().unwrap_or("");
+        // Who asked: the peer, and the viewer where the request named one.
+        let expected = if i == 7 {
+            from.as_str()
+        } else {
+            "console 127.0.0.1:"
+        };
+        assert!(who.starts_with(expected), "refusal {i} from {who:?}");
+    }
     let pause = records
         .iter()
         .find(|r| r["event"] == "supervisor" && r["command"] == "pause")
@@ -272,8 +310,9 @@ fn commands_without_the_token_from_elsewhere_or_not_in_control_are_refused_and_j
     );
 }
 
-/// A viewer that watches half a mission, camera frames included, and goes away: the journal
-/// is the one a run without a console writes, byte for byte.
+/// A viewer that watches half a mission, camera frames included, and goes away, and another
+/// that never reads: the journal is the one a run without a console writes, byte for byte,
+/// and the run ends.
 #[test]
 fn a_viewer_connected_then_dropped_changes_nothing_in_the_journal() {
     let (with, without) = (tmp("console-viewer.jsonl"), tmp("console-none.jsonl"));
@@ -288,6 +327,15 @@ fn a_viewer_connected_then_dropped_changes_nothing_in_the_journal() {
         .status()
         .expect("stitch run");
     let mut run = Run::start(&[&args[..], &["--journal", with.to_str().expect("path")]].concat());
+    // A viewer that never reads a thing after its token: its socket fills; nothing waits.
+    let (mut stuck, _) =
+        tungstenite::connect(format!("ws://{}/api/stream", run.addr)).expect("the stream");
+    stuck
+        .send(tungstenite::Message::text(format!(
+            r#"{{"token":"{}"}}"#,
+            run.token
+        )))
+        .expect("the token");
     let (mut ws, _) =
         tungstenite::connect(format!("ws://{}/api/stream", run.addr)).expect("the stream");
     ws.send(tungstenite::Message::text(format!(
@@ -329,6 +377,7 @@ fn a_viewer_connected_then_dropped_changes_nothing_in_the_journal() {
     // Gone mid-run, without a word.
     drop(ws);
     let code = run.wait(Duration::from_secs(120));
+    drop(stuck);
     assert_eq!(Some(code), status.code(), "the same outcome");
     let (a, b) = (
         std::fs::read_to_string(&with).expect("journal"),
