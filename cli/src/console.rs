@@ -2,22 +2,31 @@
 //! and the interventions the robot asks for answered there.
 
 use std::io::BufRead;
-use std::sync::mpsc::{Receiver, TryRecvError};
+use std::sync::mpsc::{Receiver, Sender, TryRecvError};
 use stitch_engine::{
     CheckpointRequest, InterventionRequest, InterventionResult, LIVE_POLL, Moment, NextPoll,
-    Supervisor, SupervisorCommand,
+    Refusal, Supervisor, SupervisorCommand,
 };
+
+/// A line heard, and who said it (`terminal`, `console viewer 3 (127.0.0.1:50412)`).
+pub type Heard = (String, String);
 
 /// What the surgeon types: `pause`, `resume`, `abort`, `e-stop`, `take-over`, `hand-back`
 /// at any time (acted on at once, in the middle of a motion too: the engine asks every
 /// [`LIVE_POLL`]), `done` or `failed` to end an intervention, and `go` to confirm a plan's
 /// checkpoint.
 /// End of input (Ctrl-D, a closed pipe) while the run waits on the surgeon aborts it.
+/// With the web console (`--console`), its buttons say the same words; the run's input ends
+/// when both have.
 pub struct ConsoleSupervisor {
-    lines: Receiver<String>,
+    lines: Receiver<Heard>,
     say: Box<dyn FnMut(&str)>,
     /// Whether the end of input has been said (once, when first seen).
     closed_said: bool,
+    /// Who said the last line.
+    from: String,
+    /// Commands the web console refused, for the journal.
+    refusals: Option<Receiver<Refusal>>,
 }
 
 impl std::fmt::Debug for ConsoleSupervisor {
@@ -29,34 +38,39 @@ impl std::fmt::Debug for ConsoleSupervisor {
 /// The commands, as the prompts list them.
 const COMMANDS: &str = "pause, resume, abort, e-stop, take-over or hand-back";
 
+/// Read standard input's lines into `tx` on a thread of their own, as the terminal's.
+fn read_stdin(tx: Sender<Heard>) {
+    std::thread::spawn(move || {
+        let mut input = std::io::stdin().lock();
+        let mut buf = Vec::new();
+        loop {
+            buf.clear();
+            match input.read_until(b'\n', &mut buf) {
+                Ok(0) => return,
+                // A line that is not UTF-8 is read as well as it can be (and then said to be
+                // unknown), not taken for the end of input.
+                Ok(_) => {
+                    let line = String::from_utf8_lossy(&buf).into_owned();
+                    if tx.send((line, "terminal".to_string())).is_err() {
+                        return;
+                    }
+                }
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(e) => {
+                    eprintln!("supervisor: cannot read standard input: {e}");
+                    return;
+                }
+            }
+        }
+    });
+}
+
 impl ConsoleSupervisor {
     /// Read standard input on a thread of its own; speak on standard error.
     pub fn stdin() -> Self {
         let (tx, rx) = std::sync::mpsc::channel();
-        std::thread::spawn(move || {
-            let mut input = std::io::stdin().lock();
-            let mut buf = Vec::new();
-            loop {
-                buf.clear();
-                match input.read_until(b'\n', &mut buf) {
-                    Ok(0) => return,
-                    // A line that is not UTF-8 is read as well as it can be (and then said
-                    // to be unknown), not taken for the end of input.
-                    Ok(_) => {
-                        if tx.send(String::from_utf8_lossy(&buf).into_owned()).is_err() {
-                            return;
-                        }
-                    }
-                    Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
-                    Err(e) => {
-                        eprintln!("supervisor: cannot read standard input: {e}");
-                        return;
-                    }
-                }
-            }
-        });
-        let say = Box::new(|s: &str| eprintln!("{s}"));
-        let mut me = Self::new(rx, say);
+        read_stdin(tx);
+        let mut me = Self::new(rx, Box::new(|s: &str| eprintln!("{s}")));
         (me.say)(&format!(
             "supervisor: you, at this terminal. Type {COMMANDS} and Enter at any time (acted \
              on at once, mid-motion too); Ctrl-C holds both arms and ends the run."
@@ -64,13 +78,37 @@ impl ConsoleSupervisor {
         me
     }
 
+    /// Standard input and the web console's buttons, both heard; the console's refusals
+    /// journaled.
+    #[cfg(feature = "console")]
+    pub fn stdin_and_web(feeds: crate::ConsoleFeeds) -> Self {
+        read_stdin(feeds.sender);
+        let mut me = Self::new(feeds.commands, Box::new(|s: &str| eprintln!("{s}")));
+        me.refusals = Some(feeds.refusals);
+        (me.say)(&format!(
+            "supervisor: you, at this terminal or the web console's buttons. Type {COMMANDS} \
+             and Enter at any time (acted on at once, mid-motion too); Ctrl-C holds both arms \
+             and ends the run."
+        ));
+        me
+    }
+
     /// A supervisor reading `lines` and speaking through `say` (tests drive it so).
-    pub fn new(lines: Receiver<String>, say: Box<dyn FnMut(&str)>) -> Self {
+    pub fn new(lines: Receiver<Heard>, say: Box<dyn FnMut(&str)>) -> Self {
         Self {
             lines,
             say,
             closed_said: false,
+            from: "terminal".to_string(),
+            refusals: None,
         }
+    }
+
+    /// The next line, waiting for it; `None` once every input has ended.
+    fn next_line(&mut self) -> Option<String> {
+        let (line, from) = self.lines.recv().ok()?;
+        self.from = from;
+        Some(line)
     }
 
     /// A typed line as a command, or `None` (said why) for an empty or unknown one.
@@ -104,13 +142,18 @@ impl Supervisor for ConsoleSupervisor {
     }
 
     fn source(&self) -> &str {
-        "terminal"
+        &self.from
+    }
+
+    fn refused(&mut self) -> Option<Refusal> {
+        self.refusals.as_ref()?.try_recv().ok()
     }
 
     fn poll(&mut self, _at: &Moment) -> Option<SupervisorCommand> {
         loop {
             match self.lines.try_recv() {
-                Ok(line) => {
+                Ok((line, from)) => {
+                    self.from = from;
                     if let Some(c) = self.command(&line) {
                         return Some(c);
                     }
@@ -139,7 +182,7 @@ impl Supervisor for ConsoleSupervisor {
             "supervisor: the arms hold; the run waits for you: type {COMMANDS}"
         ));
         loop {
-            let Ok(line) = self.lines.recv() else {
+            let Some(line) = self.next_line() else {
                 (self.say)("supervisor: end of input: the run aborts, arms held");
                 return None;
             };
@@ -160,7 +203,7 @@ impl Supervisor for ConsoleSupervisor {
             request.class
         ));
         loop {
-            let Ok(line) = self.lines.recv() else {
+            let Some(line) = self.next_line() else {
                 (self.say)("supervisor: end of input: the intervention failed");
                 return InterventionResult::Failed;
             };
@@ -184,7 +227,7 @@ impl Supervisor for ConsoleSupervisor {
             request.label
         ));
         loop {
-            let Ok(line) = self.lines.recv() else {
+            let Some(line) = self.next_line() else {
                 (self.say)("supervisor: end of input: the run aborts, arms held");
                 return None;
             };
@@ -214,7 +257,8 @@ mod tests {
     fn console(lines: &[&str], close: bool) -> (ConsoleSupervisor, Arc<Mutex<Vec<String>>>) {
         let (tx, rx) = std::sync::mpsc::channel();
         for l in lines {
-            tx.send((*l).to_string()).expect("send");
+            tx.send(((*l).to_string(), "terminal".to_string()))
+                .expect("send");
         }
         if !close {
             // Keep input open: leak the sender for the test's life.
@@ -319,5 +363,30 @@ mod tests {
         assert_eq!(s.checkpoint(&request), Some(SupervisorCommand::EStop));
         let (mut s, _) = console(&[], true);
         assert_eq!(s.checkpoint(&request), None, "input closed: the run aborts");
+    }
+
+    #[test]
+    fn the_web_console_s_words_are_heard_as_typed_ones_and_say_who_sent_them() {
+        let (tx, rx) = std::sync::mpsc::channel();
+        let (refuse, refusals) = std::sync::mpsc::channel();
+        let viewer = "console viewer 2 (127.0.0.1:50412)".to_string();
+        tx.send(("done".to_string(), viewer.clone())).expect("send");
+        tx.send(("pause".to_string(), viewer.clone()))
+            .expect("send");
+        std::mem::forget(tx);
+        let mut c = ConsoleSupervisor::new(rx, Box::new(|_| {}));
+        c.refusals = Some(refusals);
+        assert_eq!(c.intervene(&request()), InterventionResult::Recovered);
+        assert_eq!(c.source(), viewer);
+        assert_eq!(c.poll(&at(0)), Some(SupervisorCommand::Pause));
+        refuse
+            .send(Refusal {
+                command: "pause".into(),
+                from: "console 127.0.0.1:1".into(),
+                why: "wrong token".into(),
+            })
+            .expect("send");
+        assert_eq!(c.refused().map(|r| r.why), Some("wrong token".to_string()));
+        assert_eq!(c.refused(), None);
     }
 }

@@ -477,11 +477,10 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
                 );
             }
             if console.is_some() {
-                if robot == RobotKind::Scripted || no_simulator {
+                if robot == RobotKind::Scripted {
                     anyhow::bail!(
-                        "--console commands the mock or the sim-node's arms (--robot mock, or \
-                         --robot ros2 without --no-simulator); on a real dVRK the surgeon at \
-                         this terminal supervises"
+                        "--console commands arms (--robot mock or ros2); the scripted robot \
+                         has none"
                     );
                 }
                 if commands.is_some() {
@@ -573,7 +572,9 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
             let console = match console {
                 Some(addr) => {
                     let plan = Arc::new(loaded.plan.clone());
-                    let (console, feeds) = web::Console::start(addr, console_remote, &plan)?;
+                    // On a real dVRK the console's person also answers requests for help.
+                    let (console, feeds) =
+                        web::Console::start(addr, console_remote, &plan, no_simulator)?;
                     if robot == RobotKind::Mock {
                         *supervision.view.borrow_mut() =
                             Some(console.mock_view(mock.camera.clone()));

@@ -27,7 +27,7 @@ pub struct MockSupervisor {
     /// Commands given live, from another thread (a benchmark's, a console's).
     feed: Option<Receiver<SupervisorCommand>>,
     /// A console's commands, each with who sent it; a checkpoint waits for its answer.
-    named: Option<Receiver<(SupervisorCommand, String)>>,
+    named: Option<Receiver<(String, String)>>,
     /// Who sent the last command heard from `named`.
     from: String,
     /// Commands a console refused, for the journal.
@@ -96,9 +96,9 @@ impl MockSupervisor {
 impl Supervisor for MockSupervisor {
     fn poll(&mut self, at: &Moment) -> Option<SupervisorCommand> {
         if let Some(named) = &self.named {
-            let (c, from) = named.try_recv().ok()?;
+            let (word, from) = named.try_recv().ok()?;
             self.from = from;
-            return Some(c);
+            return word.parse().ok();
         }
         match &self.feed {
             Some(feed) => feed.try_recv().ok(),
@@ -131,9 +131,13 @@ impl Supervisor for MockSupervisor {
     /// The next scheduled command, if any; with none left, the run aborts.
     fn wait(&mut self) -> Option<SupervisorCommand> {
         if let Some(named) = &self.named {
-            let (c, from) = named.recv().ok()?;
-            self.from = from;
-            return Some(c);
+            loop {
+                let (word, from) = named.recv().ok()?;
+                self.from = from;
+                if let Ok(c) = word.parse() {
+                    return Some(c);
+                }
+            }
         }
         match &self.feed {
             Some(feed) => feed.recv().ok(),
@@ -168,12 +172,13 @@ impl Supervisor for MockSupervisor {
     fn checkpoint(&mut self, _request: &CheckpointRequest) -> Option<SupervisorCommand> {
         match &self.named {
             Some(named) => loop {
-                let (c, from) = named.recv().ok()?;
+                let (word, from) = named.recv().ok()?;
                 self.from = from;
-                match c {
+                match word.parse() {
+                    Err(_) => {}
                     // A pause or resume answers nothing here; the arms already hold.
-                    SupervisorCommand::Pause | SupervisorCommand::Resume => {}
-                    c => return Some(c),
+                    Ok(SupervisorCommand::Pause | SupervisorCommand::Resume) => {}
+                    Ok(c) => return Some(c),
                 }
             },
             _ => Some(SupervisorCommand::Go),

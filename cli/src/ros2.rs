@@ -527,6 +527,12 @@ pub fn run_real(
         "no simulator: nothing scores the passes or watches the thread. What the robot cannot \
          sense (a caught thread, a missed exit point) is yours to see: type pause or abort."
     );
+    #[cfg(feature = "console")]
+    let mut supervisor = match supervision.console.borrow_mut().take() {
+        Some(feeds) => ConsoleSupervisor::stdin_and_web(feeds),
+        None => ConsoleSupervisor::stdin(),
+    };
+    #[cfg(not(feature = "console"))]
     let mut supervisor = ConsoleSupervisor::stdin();
     let runner = Runner::new(
         Arc::new(loaded.plan.clone()),
@@ -535,7 +541,7 @@ pub fn run_real(
         clock,
         Some(seed),
     )
-    .streaming(recorder.map(Recorder::sink));
+    .streaming(supervision.sink(recorder));
     Ok(supervision.show(runner).run())
 }
 

@@ -70,7 +70,10 @@ pub struct Hub {
     plan: Value,
     /// The explored state diagram's edges, once computed (off the engine's thread).
     diagram: OnceLock<Value>,
-    commands: Mutex<Sender<(SupervisorCommand, String)>>,
+    commands: Mutex<Sender<(String, String)>>,
+    /// Whether the person at the console answers the robot's requests for help (`done`,
+    /// `failed`: on a real dVRK; on the mock the simulated surgeon does).
+    answers_interventions: bool,
     /// Renders the left camera's view with its overlay, on request (one viewer at a time).
     frames: Mutex<Option<FrameSource>>,
     /// Playing a recording (`stitch console FILE`): its length and state, for the page; its
@@ -150,9 +153,12 @@ impl Hub {
 
 /// What the engine's supervisor takes from the console.
 pub struct Feeds {
-    /// Commands from the viewer in control (and an e-stop from any viewer), with who sent
-    /// them (`console viewer 3 (127.0.0.1:50412)`).
-    pub commands: Receiver<(SupervisorCommand, String)>,
+    /// Commands from the viewer in control (and an e-stop from any viewer), as their words
+    /// (`pause`, ..., and `done`, `failed` where the console answers interventions), with who
+    /// sent them (`console viewer 3 (127.0.0.1:50412)`).
+    pub commands: Receiver<(String, String)>,
+    /// Another way into `commands` (the terminal's, on a real dVRK).
+    pub sender: Sender<(String, String)>,
     /// Commands refused, for the journal.
     pub refusals: Receiver<Refusal>,
 }
@@ -176,12 +182,14 @@ impl std::fmt::Debug for Console {
 impl Console {
     /// Bind `addr` and serve the console for `plan` on a thread of its own. A non-loopback
     /// address is refused unless `remote`.
+    /// `person`: the console's person answers the robot's requests for help (a real dVRK).
     pub fn start(
         addr: SocketAddr,
         remote: bool,
         plan: &Arc<Plan>,
+        person: bool,
     ) -> anyhow::Result<(Self, Feeds)> {
-        Self::open(addr, remote, plan, None)
+        Self::open(addr, remote, plan, person, None)
     }
 
     /// Serve a recorded run (`stitch console FILE`): its journal and camera frames, with a
@@ -194,7 +202,7 @@ impl Console {
         let plan = Arc::new(playback.plan);
         let end_s = playback.records.last().map_or(0.0, |r| r.t_s);
         let info = json!({ "duration_s": end_s, "complete": playback.complete, "frames": playback.frames.len() });
-        let (console, _) = Self::open(addr, remote, &plan, Some((info, playback.frames)))?;
+        let (console, _) = Self::open(addr, remote, &plan, false, Some((info, playback.frames)))?;
         {
             let mut state = console.hub.lock();
             for r in &playback.records {
@@ -209,6 +217,7 @@ impl Console {
         addr: SocketAddr,
         remote: bool,
         plan: &Arc<Plan>,
+        person: bool,
         replay: Option<(Value, Vec<RecordedFrame>)>,
     ) -> anyhow::Result<(Self, Feeds)> {
         if !addr.ip().is_loopback() && !remote {
@@ -247,7 +256,8 @@ impl Console {
             hosts,
             plan: plan_json(plan),
             diagram: OnceLock::new(),
-            commands: Mutex::new(commands),
+            commands: Mutex::new(commands.clone()),
+            answers_interventions: person,
             frames: Mutex::new(None),
             camera: std::sync::atomic::AtomicBool::new(
                 replay.as_ref().is_some_and(|(_, f)| !f.is_empty()),
@@ -315,6 +325,7 @@ impl Console {
             },
             Feeds {
                 commands: command_rx,
+                sender: commands,
                 refusals: refusal_rx,
             },
         ))
@@ -527,12 +538,12 @@ async fn command(
             return refused(StatusCode::BAD_REQUEST, &why);
         }
     };
-    let Some(cmd) = SupervisorCommand::ALL
-        .into_iter()
-        .find(|c| c.as_str() == body.command)
-    else {
-        let names: Vec<&str> = SupervisorCommand::ALL.iter().map(|c| c.as_str()).collect();
-        let why = format!("unknown command (one of {})", names.join(", "));
+    let mut words: Vec<&str> = SupervisorCommand::ALL.iter().map(|c| c.as_str()).collect();
+    if hub.answers_interventions {
+        words.extend(["done", "failed"]);
+    }
+    let Some(word) = words.iter().copied().find(|w| *w == body.command) else {
+        let why = format!("unknown command (one of {})", words.join(", "));
         hub.refuse(&from, &what, &why);
         return refused(StatusCode::BAD_REQUEST, &why);
     };
@@ -549,9 +560,7 @@ async fn command(
             return refused(StatusCode::CONFLICT, "the run has ended");
         }
         // An e-stop is never refused to a viewer with the token.
-        if cmd != SupervisorCommand::EStop
-            && (body.viewer.is_none() || state.control != body.viewer)
-        {
+        if word != "e-stop" && (body.viewer.is_none() || state.control != body.viewer) {
             let why = match state.control {
                 Some(c) => format!("viewer {c} is in control; take control first"),
                 None => "no viewer is in control; take control first".to_string(),
@@ -565,12 +574,12 @@ async fn command(
         .commands
         .lock()
         .unwrap_or_else(PoisonError::into_inner)
-        .send((cmd, from))
+        .send((word.to_string(), from))
         .is_err()
     {
         return refused(StatusCode::CONFLICT, "the run has ended");
     }
-    (StatusCode::OK, axum::Json(json!({ "sent": cmd.as_str() }))).into_response()
+    (StatusCode::OK, axum::Json(json!({ "sent": word }))).into_response()
 }
 
 #[derive(Deserialize, Default)]
@@ -686,6 +695,7 @@ async fn serve_viewer(hub: &Arc<Hub>, socket: &mut WebSocket, id: u64) -> Result
         "plan": hub.plan,
         "camera": cameras,
         "replay": hub.replay,
+        "answers_interventions": hub.answers_interventions,
     });
     socket.send(Message::Text(hello.to_string().into())).await?;
     let mut changed = hub.changed.subscribe();
@@ -928,6 +938,81 @@ impl Watch {
                 last: self.last,
             }),
             ..rig
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::io::{Read, Write};
+
+    fn plan() -> Arc<Plan> {
+        let spec = stitch_robot::WoundSpec::default();
+        let wound = stitch_robot::Wound::linear(&spec).expect("wound");
+        let loader = stitch_engine::PlanLoader::new(&wound, stitch_engine::ScriptLimits::default());
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scripts/stitch.rhai");
+        Arc::new(stitch_engine::load_plan(&loader, &path).expect("plan").plan)
+    }
+
+    /// POST `body` to `path` with the token; the status and the body.
+    fn post(console: &Console, path: &str, body: &str) -> (u16, String) {
+        let mut s = std::net::TcpStream::connect(console.addr).expect("connect");
+        let req = format!(
+            "POST {path} HTTP/1.1\r\nHost: {}\r\nAuthorization: Bearer {}\r\nConnection: close\r\n\
+             Content-Length: {}\r\n\r\n{body}",
+            console.addr,
+            console.hub.token,
+            body.len()
+        );
+        s.write_all(req.as_bytes()).expect("send");
+        let mut out = String::new();
+        let _ = s.read_to_string(&mut out);
+        let status = out
+            .split(' ')
+            .nth(1)
+            .and_then(|c| c.parse().ok())
+            .unwrap_or(0);
+        (
+            status,
+            out.split_once("\r\n\r\n")
+                .map_or("", |(_, b)| b)
+                .to_string(),
+        )
+    }
+
+    #[test]
+    fn done_and_failed_reach_the_supervisor_only_where_the_console_answers_interventions() {
+        let addr: SocketAddr = "127.0.0.1:0".parse().expect("addr");
+        for person in [true, false] {
+            let (console, feeds) = Console::start(addr, false, &plan(), person).expect("start");
+            let (got, body) = post(&console, "/api/control", "");
+            assert_eq!(got, 200, "{body}");
+            let viewer: Value = serde_json::from_str(&body).expect("json");
+            let viewer = viewer["control"].as_u64().expect("viewer");
+            for word in ["done", "failed", "pause"] {
+                let (got, body) = post(
+                    &console,
+                    "/api/command",
+                    &format!(r#"{{"command":"{word}","viewer":{viewer}}}"#),
+                );
+                if person || word == "pause" {
+                    assert_eq!(got, 200, "{word}: {body}");
+                    let (heard, from) = feeds
+                        .commands
+                        .recv_timeout(Duration::from_secs(5))
+                        .expect("heard");
+                    assert_eq!(heard, word);
+                    assert!(
+                        from.starts_with(&format!("console viewer {viewer} (")),
+                        "{from}"
+                    );
+                } else {
+                    assert_eq!(got, 400, "{word} on the mock: {body}");
+                    let r = feeds.refusals.try_recv().expect("journaled");
+                    assert_eq!(r.command, word);
+                }
+            }
         }
     }
 }

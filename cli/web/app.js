@@ -19,6 +19,7 @@ const done = new Map(); // "t:s" -> "ok" | "failed"
 const allEvents = [];   // every record received
 let replay = null;      // a recording's {duration_s, complete, frames}, when playing one
 let at = 0;             // the time shown when playing a recording, s
+let helping = false;    // the robot waits for the surgeon's intervention
 
 function el(tag, attrs, text) {
   const e = document.createElement(tag);
@@ -191,7 +192,8 @@ function onRecord(r) {
       break;
     }
     case "retry": throws[r.throw].retries += 1; break;
-    case "intervention_requested": used = r.used; break;
+    case "intervention_requested": used = r.used; helping = true; break;
+    case "intervention_ended": helping = false; break;
     case "finished": stateName = r.outcome.result; break;
   }
   const li = el("li", { value: r.seq, class: r.event }, `${r.t_s.toFixed(2)} s  ${summary(r)}`);
@@ -205,7 +207,7 @@ function onRecord(r) {
 // A recording: the run as it stood at `t` (every record up to it, again).
 function rebuild(t) {
   at = t;
-  stateName = "ready"; current = null; used = 0; done.clear();
+  stateName = "ready"; current = null; used = 0; helping = false; done.clear();
   $("events").replaceChildren();
   drawPlan();
   for (const r of allEvents) if (r.t_s <= t) onRecord(r);
@@ -229,7 +231,8 @@ function refresh() {
   document.body.dataset.control = mine ? "mine" : "other";
   $("take-control").disabled = ended || mine || viewer === null;
   document.querySelectorAll("button[data-command]").forEach((b) => {
-    b.disabled = ended || (!mine && b.dataset.command !== "e-stop") || viewer === null;
+    const answer = b.dataset.command === "done" || b.dataset.command === "failed";
+    b.disabled = ended || (!mine && b.dataset.command !== "e-stop") || viewer === null || (answer && !helping);
   });
 }
 
@@ -338,6 +341,9 @@ function connect() {
           link.className = "link ended";
         }
         if (msg.camera) { $("camera-panel").hidden = false; askFrame(ws); }
+        // On a real dVRK the person here answers the robot's requests for help.
+        $("btn-done").hidden = !msg.answers_interventions;
+        $("btn-failed").hidden = !msg.answers_interventions;
         break;
       case "frame": overlay = msg.overlay; break;
       case "no-frame": inFlight = false; setTimeout(() => askFrame(ws), 500); break;
