@@ -148,8 +148,9 @@ enum Command {
         pace: Option<f64>,
         /// Serve the live web console at ADDR [default: 127.0.0.1:8080; port 0: any free
         /// one]: the run as it goes and the supervisor's buttons, guarded by a token printed
-        /// at start (docs/console.md). Mock and --robot ros2 against the sim-node; the
-        /// simulated clock then runs at --pace 1.0 unless told otherwise.
+        /// at start (docs/console.md). Mock and --robot ros2 (the sim-node, or a real dVRK
+        /// beside the terminal); the mock's clock then runs at --pace 1.0 unless told
+        /// otherwise.
         #[arg(long, value_name = "ADDR", num_args = 0..=1, default_missing_value = "127.0.0.1:8080")]
         console: Option<std::net::SocketAddr>,
         /// Let --console listen on an address other than loopback (a warning says who can
