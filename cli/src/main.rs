@@ -579,6 +579,9 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
                     if robot == RobotKind::Mock {
                         *supervision.view.borrow_mut() =
                             Some(console.mock_view(mock.camera.clone()));
+                    } else if perception == PerceptionKind::Pipeline {
+                        *supervision.camera.borrow_mut() =
+                            Some(console.camera_view(mock.scene.needle));
                     }
                     eprintln!(
                         "console: {} (the token after #token= guards every command; keep it \
@@ -715,6 +718,9 @@ pub(crate) struct Supervision {
     /// The web console's view of the mock's camera (`--console` on the mock).
     #[cfg(feature = "console")]
     pub view: std::cell::RefCell<Option<web::MockView>>,
+    /// The web console's view of a streamed camera (`--console` over ROS 2 with the pipeline).
+    #[cfg(feature = "console")]
+    pub camera: std::cell::RefCell<Option<web::CameraView>>,
     /// Where else each journal record goes as it is journaled (the web console's viewers).
     pub watch: std::cell::RefCell<Option<stitch_engine::JournalSink>>,
     /// Wraps the rig's arms and jaws before the run (a benchmark's watch on the holds).

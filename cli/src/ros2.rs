@@ -353,6 +353,14 @@ pub fn run_ros2(
         tap.wall_epoch();
     }
     let frames = tap.as_ref().and_then(stitch_recorder::Tap::frames);
+    // The web console's view of the camera, if it shows one.
+    #[cfg(feature = "console")]
+    let view = supervision.camera.borrow_mut().take();
+    #[cfg(feature = "console")]
+    let frames = match &view {
+        Some(v) => Some(v.observer(frames)),
+        None => frames,
+    };
     let estimator: Box<dyn NeedleEstimator> = match &camera {
         Some(c) => {
             let (camera, pipeline) =
@@ -377,6 +385,11 @@ pub fn run_ros2(
         &sensing,
         seed,
     )?;
+    #[cfg(feature = "console")]
+    let rig = match &view {
+        Some(v) => v.watch().rig(rig),
+        None => rig,
+    };
     let mut primitives = supervision.rig(RobotPrimitives::new(tapped(rig, tap, &dvrk)));
     let plan = Arc::new(loaded.plan.clone());
     let (o, d) = (Arc::clone(&oracle), Arc::clone(&dvrk));
@@ -509,6 +522,14 @@ pub fn run_real(
         tap.wall_epoch();
     }
     let frames = tap.as_ref().and_then(stitch_recorder::Tap::frames);
+    // The web console's view of the camera, if it shows one.
+    #[cfg(feature = "console")]
+    let view = supervision.camera.borrow_mut().take();
+    #[cfg(feature = "console")]
+    let frames = match &view {
+        Some(v) => Some(v.observer(frames)),
+        None => frames,
+    };
     let estimator = Box::new(PipelineEstimator::new(
         ObservedCamera::new(camera, frames),
         pipeline,
@@ -522,6 +543,11 @@ pub fn run_real(
         &SensingConfig::default(),
         seed,
     )?;
+    #[cfg(feature = "console")]
+    let rig = match &view {
+        Some(v) => v.watch().rig(rig),
+        None => rig,
+    };
     let mut primitives = RobotPrimitives::new(tapped(rig, tap, &dvrk));
     eprintln!(
         "no simulator: nothing scores the passes or watches the thread. What the robot cannot \

@@ -860,16 +860,7 @@ impl MockView {
             use stitch_robot::Clock;
             let scene = world.peek_scene_view();
             let pair = renderer.render(&scene, &stitch_robot::Pose::identity(), &mut rng);
-            let c = renderer.calibration();
-            let to_cam = c.camera_to_robot.inverse();
-            let px = |p: stitch_robot::Point| -> Option<[f64; 2]> {
-                let q = to_cam * p;
-                (q.z > 1e-4).then(|| {
-                    let u = c.fx * q.x / q.z + c.cx;
-                    let v = c.fy * q.y / q.z + c.cy;
-                    [(u * 10.0).round() / 10.0, (v * 10.0).round() / 10.0]
-                })
-            };
+            let px = projector(renderer.calibration(), 1.0);
             let now = clock.now();
             let estimate = *last.lock().unwrap_or_else(PoisonError::into_inner);
             let (arc, confidence, age) = match &estimate {
@@ -939,6 +930,140 @@ impl Watch {
             }),
             ..rig
         }
+    }
+}
+
+/// The last left image a streamed camera gave (over ROS 2), kept only while a viewer waits
+/// for one: nothing is copied on the engine's thread otherwise.
+#[derive(Default)]
+struct Latest {
+    wanted: std::sync::atomic::AtomicBool,
+    frame: Mutex<
+        Option<(
+            Duration,
+            stitch_robot::RgbImage,
+            stitch_robot::StereoCalibration,
+        )>,
+    >,
+    ready: std::sync::Condvar,
+}
+
+/// The console's view of a streamed stereo camera (`--robot ros2 --perception pipeline`):
+/// the left image of each pair the pipeline captures, with the last estimate drawn over it.
+pub struct CameraView {
+    latest: Arc<Latest>,
+    last: LastEstimate,
+}
+
+impl Console {
+    /// Show the camera the run's pipeline captures from, for a needle of this model.
+    pub fn camera_view(&self, needle: stitch_robot::Needle) -> CameraView {
+        self.hub
+            .camera
+            .store(true, std::sync::atomic::Ordering::Relaxed);
+        let latest = Arc::new(Latest::default());
+        let last: LastEstimate = Arc::new(Mutex::new(None));
+        let (l, e) = (Arc::clone(&latest), Arc::clone(&last));
+        let source: FrameSource = Box::new(move || {
+            l.wanted.store(true, std::sync::atomic::Ordering::Relaxed);
+            let mut slot = l.frame.lock().unwrap_or_else(PoisonError::into_inner);
+            if slot.is_none() {
+                slot = l
+                    .ready
+                    .wait_timeout(slot, Duration::from_secs(1))
+                    .unwrap_or_else(PoisonError::into_inner)
+                    .0;
+            }
+            let (stamp, left, calibration) = slot.take()?;
+            drop(slot);
+            let full = image::RgbImage::from_raw(left.width, left.height, left.data)?;
+            let half = image::imageops::thumbnail(&full, left.width / 2, left.height / 2);
+            let estimate = *e.lock().unwrap_or_else(PoisonError::into_inner);
+            let px = projector(&calibration, 0.5);
+            let arc: Vec<[f64; 2]> = estimate
+                .map(|est| {
+                    (0..=24)
+                        .map(|i| needle.point_at(std::f64::consts::PI * f64::from(i) / 24.0))
+                        .filter_map(|p| px(est.pose * p))
+                        .collect()
+                })
+                .unwrap_or_default();
+            let mut jpeg = Vec::new();
+            image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpeg, 80)
+                .encode(
+                    half.as_raw(),
+                    half.width(),
+                    half.height(),
+                    image::ExtendedColorType::Rgb8,
+                )
+                .ok()?;
+            Some(Frame {
+                jpeg,
+                overlay: json!({
+                    "t_s": stamp.as_secs_f64(),
+                    "width": half.width(),
+                    "height": half.height(),
+                    "needle": (!arc.is_empty()).then_some(arc),
+                    "confidence": estimate.map(|e| e.confidence),
+                    "estimate_age_s": estimate.map(|e| stamp.saturating_sub(e.stamp).as_secs_f64()),
+                    "jaws": [],
+                }),
+            })
+        });
+        *self
+            .hub
+            .frames
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner) = Some(source);
+        CameraView { latest, last }
+    }
+}
+
+impl CameraView {
+    /// The camera's observer: `inner` (the recorder's, if any), and a copy of the left image
+    /// for the console when a viewer waits for one.
+    pub fn observer(
+        &self,
+        inner: Option<stitch_robot::FrameObserver>,
+    ) -> stitch_robot::FrameObserver {
+        let latest = Arc::clone(&self.latest);
+        Arc::new(move |frame, calibration| {
+            if let Some(inner) = &inner {
+                inner(frame, calibration);
+            }
+            if latest
+                .wanted
+                .swap(false, std::sync::atomic::Ordering::Relaxed)
+            {
+                *latest.frame.lock().unwrap_or_else(PoisonError::into_inner) =
+                    Some((frame.stamp, frame.left.clone(), calibration.clone()));
+                latest.ready.notify_all();
+            }
+        })
+    }
+
+    /// What watches the run's estimator for the overlay.
+    pub fn watch(&self) -> Watch {
+        Watch {
+            last: Arc::clone(&self.last),
+        }
+    }
+}
+
+/// Robot-frame points to pixels of the left image scaled by `scale`, for points in front of
+/// the camera.
+fn projector(
+    c: &stitch_robot::StereoCalibration,
+    scale: f64,
+) -> impl Fn(stitch_robot::Point) -> Option<[f64; 2]> + '_ {
+    let to_cam = c.camera_to_robot.inverse();
+    move |p| {
+        let q = to_cam * p;
+        (q.z > 1e-4).then(|| {
+            let u = (c.fx * q.x / q.z + c.cx) * scale;
+            let v = (c.fy * q.y / q.z + c.cy) * scale;
+            [(u * 10.0).round() / 10.0, (v * 10.0).round() / 10.0]
+        })
     }
 }
 

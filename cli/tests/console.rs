@@ -9,7 +9,7 @@ use std::io::{BufRead, BufReader, Read, Write};
 use std::net::TcpStream;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
-use support::{python, root, tmp};
+use support::{python, root, serial, tmp};
 
 /// A `stitch run --console` child, its console's address and token.
 struct Run {
@@ -552,4 +552,72 @@ fn a_recording_plays_in_the_console_with_its_whole_journal_and_no_commands() {
     );
     assert_eq!(got, 409, "{body}");
     assert!(body.contains("a recorded run takes no commands"), "{body}");
+}
+
+/// Over ROS 2 with the stereo pipeline, the console shows the left images the pipeline
+/// captured from the camera topics (the sim-node's), with the estimate drawn over them.
+#[cfg(feature = "ros2")]
+#[test]
+fn over_ros2_the_console_shows_the_pairs_the_pipeline_captured() {
+    let _one = serial();
+    let d = (10 + (std::process::id() % 20) * 10 + 7).to_string();
+    let _node = support::SimNode::start(&d, &["--time-scale", "10"]);
+    let mut run = Run::start(&[
+        "scripts/stitch.rhai",
+        "--robot",
+        "ros2",
+        "--domain-id",
+        &d,
+        "--perception",
+        "pipeline",
+    ]);
+    let (mut ws, _) =
+        tungstenite::connect(format!("ws://{}/api/stream", run.addr)).expect("the stream");
+    ws.send(tungstenite::Message::text(format!(
+        r#"{{"token":"{}"}}"#,
+        run.token
+    )))
+    .expect("the token");
+    let next = tungstenite::Message::text(r#"{"type":"frame"}"#);
+    let (mut frames, mut with_estimate) = (0, 0);
+    while frames < 2 || with_estimate < 1 {
+        let Ok(m) = ws.read() else { break };
+        if let tungstenite::Message::Binary(jpeg) = &m {
+            let img = image::load_from_memory(jpeg).expect("a JPEG");
+            assert_eq!(
+                (img.width(), img.height()),
+                (640, 480),
+                "half the camera's size"
+            );
+            frames += 1;
+            ws.send(next.clone()).expect("the next frame");
+            continue;
+        }
+        let Ok(text) = m.to_text() else { continue };
+        let Ok(v) = serde_json::from_str::<Value>(text) else {
+            continue;
+        };
+        match v["type"].as_str() {
+            Some("hello") => {
+                assert_eq!(v["camera"], true);
+                ws.send(next.clone()).expect("a frame");
+            }
+            Some("frame") => {
+                if v["overlay"]["needle"]
+                    .as_array()
+                    .is_some_and(|a| a.len() > 10)
+                {
+                    with_estimate += 1;
+                }
+            }
+            Some("no-frame") => ws.send(next.clone()).expect("a frame"),
+            _ => {}
+        }
+    }
+    assert!(
+        frames >= 2 && with_estimate >= 1,
+        "{frames} frames, {with_estimate} with an estimate"
+    );
+    drop(ws);
+    let _ = run.wait(Duration::from_secs(120));
 }
