@@ -158,6 +158,7 @@ pub struct Feeds {
     /// sent them (`console viewer 3 (127.0.0.1:50412)`).
     pub commands: Receiver<(String, String)>,
     /// Another way into `commands` (the terminal's, on a real dVRK).
+    #[cfg_attr(not(feature = "ros2"), allow(dead_code))] // a real dVRK is ROS 2's
     pub sender: Sender<(String, String)>,
     /// Commands refused, for the journal.
     pub refusals: Receiver<Refusal>,

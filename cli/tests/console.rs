@@ -602,13 +602,12 @@ fn over_ros2_the_console_shows_the_pairs_the_pipeline_captured() {
                 assert_eq!(v["camera"], true);
                 ws.send(next.clone()).expect("a frame");
             }
-            Some("frame") => {
+            Some("frame")
                 if v["overlay"]["needle"]
                     .as_array()
-                    .is_some_and(|a| a.len() > 10)
-                {
-                    with_estimate += 1;
-                }
+                    .is_some_and(|a| a.len() > 10) =>
+            {
+                with_estimate += 1;
             }
             Some("no-frame") => ws.send(next.clone()).expect("a frame"),
             _ => {}
