@@ -9,7 +9,7 @@ use std::io::{BufRead, BufReader, Read, Write};
 use std::net::TcpStream;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
-use support::{python, root, serial, tmp};
+use support::{python, root, tmp};
 
 /// A `stitch run --console` child, its console's address and token.
 struct Run {
@@ -559,7 +559,7 @@ fn a_recording_plays_in_the_console_with_its_whole_journal_and_no_commands() {
 #[cfg(feature = "ros2")]
 #[test]
 fn over_ros2_the_console_shows_the_pairs_the_pipeline_captured() {
-    let _one = serial();
+    let _one = support::serial();
     let d = (10 + (std::process::id() % 20) * 10 + 7).to_string();
     let _node = support::SimNode::start(&d, &["--time-scale", "10"]);
     let mut run = Run::start(&[
