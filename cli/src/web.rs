@@ -951,6 +951,7 @@ struct Latest {
 
 /// The console's view of a streamed stereo camera (`--robot ros2 --perception pipeline`):
 /// the left image of each pair the pipeline captures, with the last estimate drawn over it.
+#[cfg_attr(not(feature = "ros2"), allow(dead_code))] // the camera is streamed over ROS 2
 pub struct CameraView {
     latest: Arc<Latest>,
     last: LastEstimate,
@@ -1020,6 +1021,7 @@ impl Console {
     }
 }
 
+#[cfg_attr(not(feature = "ros2"), allow(dead_code))]
 impl CameraView {
     /// The camera's observer: `inner` (the recorder's, if any), and a copy of the left image
     /// for the console when a viewer waits for one.
