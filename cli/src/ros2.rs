@@ -387,7 +387,7 @@ pub fn run_ros2(
     )?;
     #[cfg(feature = "console")]
     let rig = match &view {
-        Some(v) => v.watch().rig(rig),
+        Some(v) => v.rig(rig),
         None => rig,
     };
     let mut primitives = supervision.rig(RobotPrimitives::new(tapped(rig, tap, &dvrk)));
@@ -545,7 +545,7 @@ pub fn run_real(
     )?;
     #[cfg(feature = "console")]
     let rig = match &view {
-        Some(v) => v.watch().rig(rig),
+        Some(v) => v.rig(rig),
         None => rig,
     };
     let mut primitives = RobotPrimitives::new(tapped(rig, tap, &dvrk));

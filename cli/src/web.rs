@@ -955,7 +955,12 @@ struct Latest {
 pub struct CameraView {
     latest: Arc<Latest>,
     last: LastEstimate,
+    /// The arms (PSM1, PSM2) whose measured poses the overlay draws, once the rig is known.
+    arms: Arms,
 }
+
+/// Arms to draw, read on the console's thread (their measured poses only).
+type Arms = Arc<Mutex<Vec<Arc<dyn stitch_robot::Arm>>>>;
 
 impl Console {
     /// Show the camera the run's pipeline captures from, for a needle of this model.
@@ -965,7 +970,8 @@ impl Console {
             .store(true, std::sync::atomic::Ordering::Relaxed);
         let latest = Arc::new(Latest::default());
         let last: LastEstimate = Arc::new(Mutex::new(None));
-        let (l, e) = (Arc::clone(&latest), Arc::clone(&last));
+        let arms: Arms = Arc::new(Mutex::new(Vec::new()));
+        let (l, e, a) = (Arc::clone(&latest), Arc::clone(&last), Arc::clone(&arms));
         let source: FrameSource = Box::new(move || {
             l.wanted.store(true, std::sync::atomic::Ordering::Relaxed);
             let mut slot = l.frame.lock().unwrap_or_else(PoisonError::into_inner);
@@ -990,6 +996,16 @@ impl Console {
                         .collect()
                 })
                 .unwrap_or_default();
+            let arms = a.lock().unwrap_or_else(PoisonError::into_inner).clone();
+            let jaws: Vec<Value> = arms
+                .iter()
+                .filter_map(|arm| {
+                    let pose = arm.measured_cp().ok()?;
+                    let tip = px(pose * stitch_robot::Point::origin())?;
+                    let back = px(pose * stitch_robot::Point::new(0.0, 0.0, -0.01))?;
+                    Some(json!({ "arm": arm.name(), "tip": tip, "back": back }))
+                })
+                .collect();
             let mut jpeg = Vec::new();
             image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpeg, 80)
                 .encode(
@@ -1008,7 +1024,7 @@ impl Console {
                     "needle": (!arc.is_empty()).then_some(arc),
                     "confidence": estimate.map(|e| e.confidence),
                     "estimate_age_s": estimate.map(|e| stamp.saturating_sub(e.stamp).as_secs_f64()),
-                    "jaws": [],
+                    "jaws": jaws,
                 }),
             })
         });
@@ -1017,7 +1033,7 @@ impl Console {
             .frames
             .lock()
             .unwrap_or_else(PoisonError::into_inner) = Some(source);
-        CameraView { latest, last }
+        CameraView { latest, last, arms }
     }
 }
 
@@ -1045,11 +1061,15 @@ impl CameraView {
         })
     }
 
-    /// What watches the run's estimator for the overlay.
-    pub fn watch(&self) -> Watch {
+    /// `rig` with its estimator watched for the overlay, and its arms' measured poses drawn
+    /// (give it the rig before a recorder's tap: the console's reads are not the run's).
+    pub fn rig(&self, rig: stitch_primitives::Rig) -> stitch_primitives::Rig {
+        *self.arms.lock().unwrap_or_else(PoisonError::into_inner) =
+            vec![Arc::clone(&rig.right), Arc::clone(&rig.left)];
         Watch {
             last: Arc::clone(&self.last),
         }
+        .rig(rig)
     }
 }
 

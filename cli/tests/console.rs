@@ -602,12 +602,11 @@ fn over_ros2_the_console_shows_the_pairs_the_pipeline_captured() {
                 assert_eq!(v["camera"], true);
                 ws.send(next.clone()).expect("a frame");
             }
-            Some("frame")
-                if v["overlay"]["needle"]
-                    .as_array()
-                    .is_some_and(|a| a.len() > 10) =>
-            {
-                with_estimate += 1;
+            Some("frame") => {
+                let o = &v["overlay"];
+                let jaws = o["jaws"].as_array().map_or(0, Vec::len);
+                assert_eq!(jaws, 2, "both arms' measured poses drawn: {o}");
+                with_estimate += usize::from(o["needle"].as_array().is_some_and(|a| a.len() > 10));
             }
             Some("no-frame") => ws.send(next.clone()).expect("a frame"),
             _ => {}
