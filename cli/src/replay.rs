@@ -785,6 +785,9 @@ pub(crate) struct Playback {
     pub plan: stitch_engine::Plan,
     /// The left camera's recorded frames, in time order.
     pub frames: Vec<(u64, Vec<u8>)>,
+    /// What the recorder drew on the left image (the estimate, the truth), by log time, in
+    /// time order.
+    pub annotations: Vec<(u64, stitch_recorder::ImageAnnotations)>,
     /// Whether the file was finished (else read up to its last closed chunk).
     pub complete: bool,
 }
@@ -807,8 +810,22 @@ pub(crate) fn playback(file: &Path) -> anyhow::Result<Playback> {
         .filter(|(_, c)| c.topic == stitch_recorder::FRAME_TOPICS[0])
         .map(|(id, _)| *id)
         .collect();
-    let mut frames = Vec::new();
+    let drawn: Vec<u16> = rec
+        .got
+        .channels
+        .iter()
+        .filter(|(_, c)| c.topic == "/stitch/camera/left/annotations")
+        .map(|(id, _)| *id)
+        .collect();
+    let (mut frames, mut annotations) = (Vec::new(), Vec::new());
     for (channel, t, bytes) in &rec.got.messages {
+        if drawn.contains(channel) {
+            let a: stitch_recorder::ImageAnnotations =
+                stitch_dvrk::decode(bytes, stitch_recorder::IMAGE_ANNOTATIONS.name).map_err(
+                    |e| anyhow::anyhow!("{}: a left image annotation: {e}", file.display()),
+                )?;
+            annotations.push((*t, a));
+        }
         if left.contains(channel) {
             let image: stitch_recorder::CompressedImage =
                 stitch_dvrk::decode(bytes, stitch_recorder::COMPRESSED_IMAGE.name)
@@ -817,10 +834,12 @@ pub(crate) fn playback(file: &Path) -> anyhow::Result<Playback> {
         }
     }
     frames.sort_by_key(|(t, _)| *t);
+    annotations.sort_by_key(|(t, _)| *t);
     Ok(Playback {
         records: rec.got.records.clone(),
         plan,
         frames,
+        annotations,
         complete: rec.got.complete,
     })
 }

@@ -42,6 +42,10 @@ const MAX_FRAME_HZ: f64 = 15.0;
 /// A recorded frame: its log time (ns) and JPEG.
 type RecordedFrame = (u64, Vec<u8>);
 
+/// What the recorder drew on the left image at a log time (ns): lines and labels, as the page
+/// draws them (`{"lines": [{"points", "color"}], "labels": [{"at", "text", "color"}]}`).
+type RecordedDrawing = (u64, Value);
+
 /// A camera frame for the page: the left view (JPEG) and what to draw over it, in its pixels.
 pub struct Frame {
     /// The left image, JPEG.
@@ -80,6 +84,7 @@ pub struct Hub {
     /// left camera's frames (log time ns, JPEG).
     replay: Option<Value>,
     recorded_frames: Vec<RecordedFrame>,
+    recorded_drawings: Vec<RecordedDrawing>,
     /// Whether the run will show a camera (frames may come a moment after the start).
     camera: std::sync::atomic::AtomicBool,
     /// When the last frame was made (frames are made at most [`MAX_FRAME_HZ`]).
@@ -203,7 +208,18 @@ impl Console {
         let plan = Arc::new(playback.plan);
         let end_s = playback.records.last().map_or(0.0, |r| r.t_s);
         let info = json!({ "duration_s": end_s, "complete": playback.complete, "frames": playback.frames.len() });
-        let (console, _) = Self::open(addr, remote, &plan, false, Some((info, playback.frames)))?;
+        let drawings = playback
+            .annotations
+            .iter()
+            .map(|(t, a)| (*t, drawing(a)))
+            .collect();
+        let (console, _) = Self::open(
+            addr,
+            remote,
+            &plan,
+            false,
+            Some((info, playback.frames, drawings)),
+        )?;
         {
             let mut state = console.hub.lock();
             for r in &playback.records {
@@ -219,7 +235,7 @@ impl Console {
         remote: bool,
         plan: &Arc<Plan>,
         person: bool,
-        replay: Option<(Value, Vec<RecordedFrame>)>,
+        replay: Option<(Value, Vec<RecordedFrame>, Vec<RecordedDrawing>)>,
     ) -> anyhow::Result<(Self, Feeds)> {
         if !addr.ip().is_loopback() && !remote {
             anyhow::bail!(
@@ -261,10 +277,17 @@ impl Console {
             answers_interventions: person,
             frames: Mutex::new(None),
             camera: std::sync::atomic::AtomicBool::new(
-                replay.as_ref().is_some_and(|(_, f)| !f.is_empty()),
+                replay.as_ref().is_some_and(|(_, f, _)| !f.is_empty()),
             ),
-            recorded_frames: replay.as_ref().map(|(_, f)| f.clone()).unwrap_or_default(),
-            replay: replay.map(|(info, _)| info),
+            recorded_frames: replay
+                .as_ref()
+                .map(|(_, f, _)| f.clone())
+                .unwrap_or_default(),
+            recorded_drawings: replay
+                .as_ref()
+                .map(|(_, _, d)| d.clone())
+                .unwrap_or_default(),
+            replay: replay.map(|(info, _, _)| info),
             last_frame: Mutex::new(None),
             refusals: Mutex::new(refusals),
         });
@@ -391,15 +414,58 @@ fn record_json(r: &Record) -> Arc<str> {
 }
 
 /// A recorded run's frame at `t_s` (the last one at or before it; the first one before
-/// any), with no overlay.
-fn recorded_frame(frames: &[RecordedFrame], t_s: f64) -> Option<Frame> {
+/// any), with what the recorder drew on the left image last by then (the estimate, and the
+/// truth on the mock).
+fn recorded_frame(
+    frames: &[RecordedFrame],
+    drawings: &[RecordedDrawing],
+    t_s: f64,
+) -> Option<Frame> {
     let t = (t_s.max(0.0) * 1e9) as u64;
     let i = frames.partition_point(|(ft, _)| *ft <= t).saturating_sub(1);
     let (ft, jpeg) = frames.get(i)?;
+    let drawn = drawings
+        .partition_point(|(dt, _)| *dt <= t)
+        .checked_sub(1)
+        .and_then(|k| drawings.get(k));
+    let mut overlay = json!({ "t_s": *ft as f64 * 1e-9, "needle": null, "jaws": [] });
+    if let Some((dt, d)) = drawn {
+        overlay["drawn"] = d.clone();
+        overlay["drawn_t_s"] = json!(*dt as f64 * 1e-9);
+    }
     Some(Frame {
         jpeg: jpeg.clone(),
-        overlay: json!({ "t_s": *ft as f64 * 1e-9, "needle": null, "jaws": [] }),
+        overlay,
     })
+}
+
+/// What the recorder drew, as the page draws it: line strips and labels, colours as CSS.
+fn drawing(a: &stitch_recorder::ImageAnnotations) -> Value {
+    let css = |c: &stitch_recorder::Color| {
+        format!(
+            "rgba({}, {}, {}, {})",
+            (c.r * 255.0).round(),
+            (c.g * 255.0).round(),
+            (c.b * 255.0).round(),
+            c.a
+        )
+    };
+    let lines: Vec<Value> = a
+        .points
+        .iter()
+        .map(|p| {
+            json!({
+                "points": p.points.iter().map(|q| [q.x, q.y]).collect::<Vec<_>>(),
+                "color": css(&p.outline_color),
+            })
+        })
+        .collect();
+    let labels: Vec<Value> = a
+        .texts
+        .iter()
+        .map(|t| json!({ "at": [t.position.x, t.position.y], "text": t.text, "color": css(&t.text_color) }))
+        .collect();
+    json!({ "lines": lines, "labels": labels })
 }
 
 /// A per-run token: 128 bits from the operating system's generator (no console without it:
@@ -750,7 +816,7 @@ async fn serve_viewer(hub: &Arc<Hub>, socket: &mut WebSocket, id: u64) -> Result
                                 let hub = Arc::clone(hub);
                                 move || match ask.t_s {
                                     Some(t) if hub.replay.is_some() => {
-                                        recorded_frame(&hub.recorded_frames, t)
+                                        recorded_frame(&hub.recorded_frames, &hub.recorded_drawings, t)
                                     }
                                     _ => make_frame(&hub),
                                 }

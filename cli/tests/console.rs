@@ -491,12 +491,20 @@ fn the_page_in_a_real_browser_pauses_resumes_and_aborts_a_mission() {
 }
 
 /// `stitch console FILE.mcap`: the recorded run's plan and every record of its journal, its
-/// length for the timeline; no commands.
+/// length for the timeline, its camera frames with what the recorder drew on them; no
+/// commands.
 #[test]
 fn a_recording_plays_in_the_console_with_its_whole_journal_and_no_commands() {
     let file = tmp("console-recorded.mcap");
     let status = Command::new(env!("CARGO_BIN_EXE_stitch"))
-        .args(["run", "scripts/stitch.rhai", "--seed", "2", "--journal"])
+        .args(["run", "scripts/stitch.rhai", "--seed", "2"])
+        .args([
+            "--perception",
+            "pipeline",
+            "--record-frames",
+            "1",
+            "--journal",
+        ])
         .arg(&file)
         .current_dir(root())
         .stdout(Stdio::null())
@@ -528,8 +536,13 @@ fn a_recording_plays_in_the_console_with_its_whole_journal_and_no_commands() {
     )))
     .expect("the token");
     let mut events = Vec::new();
-    while events.len() < exported.len() {
+    let (mut frame, mut drawn) = (None, None);
+    while events.len() < exported.len() || frame.is_none() {
         let m = ws.read().expect("a message");
+        if let tungstenite::Message::Binary(jpeg) = &m {
+            frame = Some(image::load_from_memory(jpeg).expect("a JPEG"));
+            continue;
+        }
         let v: Value = serde_json::from_str(m.to_text().expect("text")).expect("json");
         match v["type"].as_str() {
             Some("hello") => {
@@ -537,12 +550,29 @@ fn a_recording_plays_in_the_console_with_its_whole_journal_and_no_commands() {
                 let end = exported.last().expect("records")["t_s"].as_f64();
                 assert_eq!(v["replay"]["duration_s"].as_f64(), end);
                 assert_eq!(v["replay"]["complete"], true);
+                assert_eq!(v["camera"], true, "the recording has frames");
+                // The frame half way through the run.
+                let at = end.unwrap_or(0.0) / 2.0;
+                ws.send(tungstenite::Message::text(format!(
+                    r#"{{"type":"frame","t_s":{at}}}"#
+                )))
+                .expect("ask");
             }
             Some("events") => events.extend(v["events"].as_array().expect("events").clone()),
+            Some("frame") => drawn = Some(v["overlay"]["drawn"].clone()),
             _ => {}
         }
     }
     assert_eq!(events, exported, "every record, in order");
+    let frame = frame.expect("a frame");
+    assert_eq!(
+        (frame.width(), frame.height()),
+        (1280, 960),
+        "the recorded frame, whole"
+    );
+    let drawn = drawn.expect("the frame's overlay");
+    let arc = drawn["lines"][0]["points"].as_array().map_or(0, Vec::len);
+    assert!(arc > 10, "the recorded estimate's arc drawn: {drawn}");
     let (got, body) = request(
         &run.addr,
         "POST",

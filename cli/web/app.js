@@ -298,6 +298,16 @@ async function drawFrame(ws, blob) {
       o.needle.forEach(([u, v], i) => (i ? g.lineTo(u, v) : g.moveTo(u, v)));
       g.stroke();
     }
+    // A recording's drawing: what the recorder drew on the image (estimate, truth).
+    for (const l of (o && o.drawn && o.drawn.lines) || []) {
+      g.strokeStyle = l.color; g.lineWidth = 2.5;
+      g.beginPath();
+      l.points.forEach(([u, v], i) => (i ? g.lineTo(u, v) : g.moveTo(u, v)));
+      g.stroke();
+    }
+    for (const t of (o && o.drawn && o.drawn.labels) || []) {
+      g.fillStyle = t.color; g.font = "14px sans-serif"; g.fillText(t.text, t.at[0], t.at[1]);
+    }
     for (const j of (o && o.jaws) || []) {
       g.strokeStyle = "#2979ff"; g.fillStyle = "#2979ff"; g.lineWidth = 2;
       g.beginPath(); g.moveTo(...j.back); g.lineTo(...j.tip); g.stroke();
@@ -309,7 +319,9 @@ async function drawFrame(ws, blob) {
     frames = frames.filter((t) => now - t < 2000);
     $("fps").textContent = `${(frames.length / 2).toFixed(1)} frames/s, t ${o ? o.t_s.toFixed(1) : "?"} s`;
     document.body.dataset.frames = String((Number(document.body.dataset.frames) || 0) + 1);
-    $("estimate").textContent = replay ? "recorded frame (no overlay)" : o && o.confidence !== null
+    $("estimate").textContent = replay
+      ? (o && o.drawn ? `as recorded: the drawing of ${o.drawn_t_s.toFixed(1)} s` : "as recorded")
+      : o && o.confidence !== null
       ? `last estimate: confidence ${o.confidence.toFixed(2)}, ${o.estimate_age_s.toFixed(1)} s old`
       : "no estimate yet";
   } finally {
@@ -336,6 +348,8 @@ function connect() {
         replay = msg.replay;
         if (replay) {
           $("timeline").hidden = false; $("controls").hidden = true;
+          // A recording's frames carry what the recorder drew, in its own colours.
+          document.querySelectorAll(".needle-key, .jaw-key").forEach((k) => { k.hidden = true; });
           $("scrub").max = String(replay.duration_s);
           link.textContent = replay.complete ? "recording" : "recording (unfinished)";
           link.className = "link ended";

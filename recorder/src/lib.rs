@@ -6,8 +6,8 @@ mod tap;
 mod write;
 
 pub use msgs::{
-    CHANNELS, COMPRESSED_IMAGE, Channel, CompressedImage, Event, Log, MsgType, NeedleEstimate, Qos,
-    StepEnd, Transition, schema_text,
+    CHANNELS, COMPRESSED_IMAGE, Channel, Color, CompressedImage, Event, IMAGE_ANNOTATIONS,
+    ImageAnnotations, Log, MsgType, NeedleEstimate, Qos, StepEnd, Transition, schema_text,
 };
 pub use read::{Recorded, read, read_bytes, recover, rewrite, to_jsonl};
 pub use tap::{FRAME, Tap, Truth};
