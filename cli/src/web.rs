@@ -239,9 +239,17 @@ impl Console {
     ) -> anyhow::Result<(Self, Feeds)> {
         if !addr.ip().is_loopback() && !remote {
             anyhow::bail!(
-                "--console {addr}: not a loopback address; anyone who can reach it could watch \
-                 the run (commands still need the token). Add --console-remote to serve it \
-                 there anyway"
+                "--console {addr}: not a loopback address; anyone who can reach it could open \
+                 the page (the run's events and commands still need the token). Add \
+                 --console-remote to serve it there anyway"
+            );
+        }
+        if addr.ip().is_unspecified() {
+            anyhow::bail!(
+                "--console {addr}: give the address of the interface to serve on (e.g. \
+                 192.168.1.5:{}), not every interface: the console accepts only requests whose \
+                 Host is the address it was given (or loopback)",
+                addr.port()
             );
         }
         let listener = std::net::TcpListener::bind(addr)
@@ -251,8 +259,8 @@ impl Console {
         if !addr.ip().is_loopback() {
             eprintln!(
                 "WARNING: the console listens on {addr}, not loopback: anyone on that network \
-                 can open the page; only the token keeps them from commanding the robot. The \
-                 traffic is not encrypted."
+                 can open the page; only the token keeps them from watching the run and \
+                 commanding the robot. The traffic, token included, is not encrypted."
             );
         }
         let port = addr.port();
@@ -261,7 +269,7 @@ impl Console {
             format!("localhost:{port}"),
             format!("[::1]:{port}"),
         ];
-        if !addr.ip().is_loopback() && !addr.ip().is_unspecified() {
+        if !addr.ip().is_loopback() {
             hosts.push(addr.to_string());
         }
         let (commands, command_rx) = std::sync::mpsc::channel();
