@@ -581,15 +581,11 @@ impl Tap {
 /// camera left out).
 fn project(c: &StereoCalibration, needle: &Needle, pose: &Pose) -> Vec<Point2> {
     const SEGMENTS: u32 = 24;
-    let to_camera = c.camera_to_robot.inverse();
     (0..=SEGMENTS)
         .filter_map(|i| {
             let angle = std::f64::consts::PI * f64::from(i) / f64::from(SEGMENTS);
-            let q = to_camera * (pose * needle.point_at(angle));
-            (q.z > 1e-6).then(|| Point2 {
-                x: c.fx * q.x / q.z + c.cx,
-                y: c.fy * q.y / q.z + c.cy,
-            })
+            let [x, y] = c.left_pixel(&(pose * needle.point_at(angle)))?;
+            Some(Point2 { x, y })
         })
         .collect()
 }

@@ -1,6 +1,6 @@
 //! The stereo camera: calibrated, rectified frame pairs with a timestamp.
 
-use crate::{Pose, RobotError};
+use crate::{Point, Pose, RobotError};
 use serde::{Deserialize, Serialize};
 use std::time::Duration;
 
@@ -49,6 +49,13 @@ pub struct StereoCalibration {
 }
 
 impl StereoCalibration {
+    /// Where the robot-frame point `p` falls in the left image, pixels `[column, row]`; `None`
+    /// for a point not in front of the camera.
+    pub fn left_pixel(&self, p: &Point) -> Option<[f64; 2]> {
+        let q = self.camera_to_robot.inverse() * p;
+        (q.z > 1e-6).then(|| [self.fx * q.x / q.z + self.cx, self.fy * q.y / q.z + self.cy])
+    }
+
     /// Refuse values no camera has.
     pub fn validate(&self) -> Result<(), RobotError> {
         let bad = |why: String| {
