@@ -767,6 +767,31 @@ impl Supervision {
         }
     }
 
+    /// The camera's observer (`frames`, the recorder's if any), showing the web console the
+    /// pairs too where it shows a streamed camera.
+    #[cfg(feature = "ros2")] // a streamed camera is ROS 2's
+    pub fn observe(
+        &self,
+        frames: Option<stitch_robot::FrameObserver>,
+    ) -> Option<stitch_robot::FrameObserver> {
+        #[cfg(feature = "console")]
+        if let Some(view) = self.camera.borrow().as_ref() {
+            return Some(view.observer(frames));
+        }
+        frames
+    }
+
+    /// `rig` with its estimates and arms drawn by the web console, where it shows a streamed
+    /// camera.
+    #[cfg(feature = "ros2")] // a streamed camera is ROS 2's
+    pub fn drawn(&self, rig: stitch_primitives::Rig) -> stitch_primitives::Rig {
+        #[cfg(feature = "console")]
+        if let Some(view) = self.camera.borrow().as_ref() {
+            return view.rig(rig);
+        }
+        rig
+    }
+
     /// The run's journal sink: the recorder's, the console's, both or none.
     pub fn sink(&self, recorder: Option<&Recorder>) -> Option<stitch_engine::JournalSink> {
         let watch = self.watch.borrow_mut().take();

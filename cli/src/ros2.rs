@@ -354,13 +354,7 @@ pub fn run_ros2(
     }
     let frames = tap.as_ref().and_then(stitch_recorder::Tap::frames);
     // The web console's view of the camera, if it shows one.
-    #[cfg(feature = "console")]
-    let view = supervision.camera.borrow_mut().take();
-    #[cfg(feature = "console")]
-    let frames = match &view {
-        Some(v) => Some(v.observer(frames)),
-        None => frames,
-    };
+    let frames = supervision.observe(frames);
     let estimator: Box<dyn NeedleEstimator> = match &camera {
         Some(c) => {
             let (camera, pipeline) =
@@ -385,11 +379,7 @@ pub fn run_ros2(
         &sensing,
         seed,
     )?;
-    #[cfg(feature = "console")]
-    let rig = match &view {
-        Some(v) => v.rig(rig),
-        None => rig,
-    };
+    let rig = supervision.drawn(rig);
     let mut primitives = supervision.rig(RobotPrimitives::new(tapped(rig, tap, &dvrk)));
     let plan = Arc::new(loaded.plan.clone());
     let (o, d) = (Arc::clone(&oracle), Arc::clone(&dvrk));
@@ -523,13 +513,7 @@ pub fn run_real(
     }
     let frames = tap.as_ref().and_then(stitch_recorder::Tap::frames);
     // The web console's view of the camera, if it shows one.
-    #[cfg(feature = "console")]
-    let view = supervision.camera.borrow_mut().take();
-    #[cfg(feature = "console")]
-    let frames = match &view {
-        Some(v) => Some(v.observer(frames)),
-        None => frames,
-    };
+    let frames = supervision.observe(frames);
     let estimator = Box::new(PipelineEstimator::new(
         ObservedCamera::new(camera, frames),
         pipeline,
@@ -543,11 +527,7 @@ pub fn run_real(
         &SensingConfig::default(),
         seed,
     )?;
-    #[cfg(feature = "console")]
-    let rig = match &view {
-        Some(v) => v.rig(rig),
-        None => rig,
-    };
+    let rig = supervision.drawn(rig);
     let mut primitives = RobotPrimitives::new(tapped(rig, tap, &dvrk));
     eprintln!(
         "no simulator: nothing scores the passes or watches the thread. What the robot cannot \

@@ -935,15 +935,15 @@ impl MockView {
             use stitch_robot::Clock;
             let scene = world.peek_scene_view();
             let pair = renderer.render(&scene, &stitch_robot::Pose::identity(), &mut rng);
-            let px = projector(renderer.calibration(), 1.0);
+            let draw = Drawn {
+                calibration: renderer.calibration(),
+                scale: 1.0,
+            };
             let now = clock.now();
             let estimate = *last.lock().unwrap_or_else(PoisonError::into_inner);
             let (arc, confidence, age) = match &estimate {
                 Some(e) => (
-                    (0..=24)
-                        .map(|i| needle.point_at(std::f64::consts::PI * f64::from(i) / 24.0))
-                        .filter_map(|p| px(e.pose * p))
-                        .collect::<Vec<_>>(),
+                    draw.needle(&needle, &e.pose),
                     Some(e.confidence),
                     Some(now.saturating_sub(e.stamp).as_secs_f64()),
                 ),
@@ -954,22 +954,13 @@ impl MockView {
                 .iter()
                 .zip(["PSM1", "PSM2"])
                 .filter_map(|(t, arm)| {
-                    let tip = px(t.pose * stitch_robot::Point::origin())?;
-                    let back = px(t.pose * stitch_robot::Point::new(0.0, 0.0, -0.01))?;
-                    Some(json!({ "arm": arm, "tip": tip, "back": back, "jaw_rad": t.jaw_rad }))
+                    let mut jaw = draw.jaw(arm, &t.pose)?;
+                    jaw["jaw_rad"] = json!(t.jaw_rad);
+                    Some(jaw)
                 })
                 .collect();
-            let mut jpeg = Vec::new();
-            image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpeg, 80)
-                .encode(
-                    &pair.left.data,
-                    pair.left.width,
-                    pair.left.height,
-                    image::ExtendedColorType::Rgb8,
-                )
-                .ok()?;
             Some(Frame {
-                jpeg,
+                jpeg: jpeg(&pair.left.data, pair.left.width, pair.left.height)?,
                 overlay: json!({
                     "t_s": now.as_secs_f64(),
                     "width": pair.left.width,
@@ -1061,36 +1052,20 @@ impl Console {
             let full = image::RgbImage::from_raw(left.width, left.height, left.data)?;
             let half = image::imageops::thumbnail(&full, left.width / 2, left.height / 2);
             let estimate = *e.lock().unwrap_or_else(PoisonError::into_inner);
-            let px = projector(&calibration, 0.5);
-            let arc: Vec<[f64; 2]> = estimate
-                .map(|est| {
-                    (0..=24)
-                        .map(|i| needle.point_at(std::f64::consts::PI * f64::from(i) / 24.0))
-                        .filter_map(|p| px(est.pose * p))
-                        .collect()
-                })
+            let draw = Drawn {
+                calibration: &calibration,
+                scale: 0.5,
+            };
+            let arc = estimate
+                .map(|est| draw.needle(&needle, &est.pose))
                 .unwrap_or_default();
             let arms = a.lock().unwrap_or_else(PoisonError::into_inner).clone();
             let jaws: Vec<Value> = arms
                 .iter()
-                .filter_map(|arm| {
-                    let pose = arm.measured_cp().ok()?;
-                    let tip = px(pose * stitch_robot::Point::origin())?;
-                    let back = px(pose * stitch_robot::Point::new(0.0, 0.0, -0.01))?;
-                    Some(json!({ "arm": arm.name(), "tip": tip, "back": back }))
-                })
+                .filter_map(|arm| draw.jaw(arm.name(), &arm.measured_cp().ok()?))
                 .collect();
-            let mut jpeg = Vec::new();
-            image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpeg, 80)
-                .encode(
-                    half.as_raw(),
-                    half.width(),
-                    half.height(),
-                    image::ExtendedColorType::Rgb8,
-                )
-                .ok()?;
             Some(Frame {
-                jpeg,
+                jpeg: jpeg(half.as_raw(), half.width(), half.height())?,
                 overlay: json!({
                     "t_s": stamp.as_secs_f64(),
                     "width": half.width(),
@@ -1147,21 +1122,43 @@ impl CameraView {
     }
 }
 
-/// Robot-frame points to pixels of the left image scaled by `scale`, for points in front of
-/// the camera.
-fn projector(
-    c: &stitch_robot::StereoCalibration,
+/// What the page draws over a left image shown `scale` times the calibrated size: pixels
+/// to 0.1 px, points behind the camera left out.
+struct Drawn<'a> {
+    calibration: &'a stitch_robot::StereoCalibration,
     scale: f64,
-) -> impl Fn(stitch_robot::Point) -> Option<[f64; 2]> + '_ {
-    let to_cam = c.camera_to_robot.inverse();
-    move |p| {
-        let q = to_cam * p;
-        (q.z > 1e-4).then(|| {
-            let u = (c.fx * q.x / q.z + c.cx) * scale;
-            let v = (c.fy * q.y / q.z + c.cy) * scale;
-            [(u * 10.0).round() / 10.0, (v * 10.0).round() / 10.0]
-        })
+}
+
+impl Drawn<'_> {
+    fn px(&self, p: &stitch_robot::Point) -> Option<[f64; 2]> {
+        let [u, v] = self.calibration.left_pixel(p)?;
+        let round = |x: f64| (x * self.scale * 10.0).round() / 10.0;
+        Some([round(u), round(v)])
     }
+
+    /// The needle's half circle at `pose`, tip first.
+    fn needle(&self, needle: &stitch_robot::Needle, pose: &stitch_robot::Pose) -> Vec<[f64; 2]> {
+        (0..=24)
+            .map(|i| needle.point_at(std::f64::consts::PI * f64::from(i) / 24.0))
+            .filter_map(|p| self.px(&(pose * p)))
+            .collect()
+    }
+
+    /// A tool at `pose`: its tip and a point 1 cm back along its blades.
+    fn jaw(&self, arm: &str, pose: &stitch_robot::Pose) -> Option<Value> {
+        let tip = self.px(&(pose * stitch_robot::Point::origin()))?;
+        let back = self.px(&(pose * stitch_robot::Point::new(0.0, 0.0, -0.01)))?;
+        Some(json!({ "arm": arm, "tip": tip, "back": back }))
+    }
+}
+
+/// An RGB image as JPEG (quality 80).
+fn jpeg(rgb: &[u8], width: u32, height: u32) -> Option<Vec<u8>> {
+    let mut out = Vec::new();
+    image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, 80)
+        .encode(rgb, width, height, image::ExtendedColorType::Rgb8)
+        .ok()?;
+    Some(out)
 }
 
 #[cfg(test)]
