@@ -11,6 +11,9 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 use support::{python, root, tmp};
 
+/// A WebSocket viewer of the console's stream.
+type Viewer = tungstenite::WebSocket<tungstenite::stream::MaybeTlsStream<TcpStream>>;
+
 /// A `stitch run --console` child, its console's address and token.
 struct Run {
     child: Child,
@@ -52,6 +55,18 @@ impl Run {
             addr: addr.to_string(),
             token: token.to_string(),
         }
+    }
+
+    /// A viewer on its console's stream, its token sent.
+    fn viewer(&self) -> Viewer {
+        let (mut ws, _) =
+            tungstenite::connect(format!("ws://{}/api/stream", self.addr)).expect("the stream");
+        ws.send(tungstenite::Message::text(format!(
+            r#"{{"token":"{}"}}"#,
+            self.token
+        )))
+        .expect("the token");
+        ws
     }
 
     /// The exit code, waiting at most `limit`.
@@ -328,21 +343,8 @@ fn a_viewer_connected_then_dropped_changes_nothing_in_the_journal() {
         .expect("stitch run");
     let mut run = Run::start(&[&args[..], &["--journal", with.to_str().expect("path")]].concat());
     // A viewer that never reads a thing after its token: its socket fills; nothing waits.
-    let (mut stuck, _) =
-        tungstenite::connect(format!("ws://{}/api/stream", run.addr)).expect("the stream");
-    stuck
-        .send(tungstenite::Message::text(format!(
-            r#"{{"token":"{}"}}"#,
-            run.token
-        )))
-        .expect("the token");
-    let (mut ws, _) =
-        tungstenite::connect(format!("ws://{}/api/stream", run.addr)).expect("the stream");
-    ws.send(tungstenite::Message::text(format!(
-        r#"{{"token":"{}"}}"#,
-        run.token
-    )))
-    .expect("the token");
+    let stuck = run.viewer();
+    let mut ws = run.viewer();
     let (mut events, mut frames) = (0, 0);
     let mut saw_hello = false;
     let next = tungstenite::Message::text(r#"{"type":"frame"}"#);
@@ -528,13 +530,7 @@ fn a_recording_plays_in_the_console_with_its_whole_journal_and_no_commands() {
         "--addr",
         "127.0.0.1:0",
     ]);
-    let (mut ws, _) =
-        tungstenite::connect(format!("ws://{}/api/stream", run.addr)).expect("the stream");
-    ws.send(tungstenite::Message::text(format!(
-        r#"{{"token":"{}"}}"#,
-        run.token
-    )))
-    .expect("the token");
+    let mut ws = run.viewer();
     let mut events = Vec::new();
     let (mut frame, mut drawn) = (None, None);
     while events.len() < exported.len() || frame.is_none() {
@@ -601,13 +597,7 @@ fn over_ros2_the_console_shows_the_pairs_the_pipeline_captured() {
         "--perception",
         "pipeline",
     ]);
-    let (mut ws, _) =
-        tungstenite::connect(format!("ws://{}/api/stream", run.addr)).expect("the stream");
-    ws.send(tungstenite::Message::text(format!(
-        r#"{{"token":"{}"}}"#,
-        run.token
-    )))
-    .expect("the token");
+    let mut ws = run.viewer();
     let next = tungstenite::Message::text(r#"{"type":"frame"}"#);
     let (mut frames, mut with_estimate) = (0, 0);
     while frames < 2 || with_estimate < 1 {
