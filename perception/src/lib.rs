@@ -5,6 +5,7 @@ pub mod fit;
 #[cfg(feature = "onnx")]
 pub mod onnx;
 pub mod pipeline;
+pub mod refine;
 pub mod segment;
 
 pub use disparity::{

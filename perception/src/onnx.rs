@@ -286,6 +286,10 @@ impl Segmenter for OnnxSegmenter {
         self.locator.locate(image, within)
     }
 
+    fn candidates(&self, image: &RgbImage, within: Rect) -> Vec<Rect> {
+        self.locator.candidates(image, within)
+    }
+
     fn segment(&self, image: &RgbImage, roi: Rect) -> Result<Masks, PerceptionError> {
         let roi = roi.clipped(image.width, image.height);
         let [n, t] = self.logits(image, roi)?;

@@ -7,6 +7,7 @@ use crate::disparity::{
     DisparityMap, MaskRowMatcher, SemiGlobalMatcher, StereoInput, StereoMatcher,
 };
 use crate::fit::{self, Circle, RansacParams, arc_extent, plane_basis};
+use crate::refine::{Images, Refined};
 use crate::segment::{ColorSegmenter, Masks, Rect, Segmenter, check_image};
 use crate::{NeedleEstimate, NeedleEstimator, PerceptionError};
 use nalgebra::{Matrix3, Rotation3, UnitQuaternion};
@@ -15,7 +16,13 @@ use rand_chacha::rand_core::SeedableRng;
 use serde::{Deserialize, Serialize};
 use std::f64::consts::PI;
 use std::time::{Duration, Instant};
-use stitch_robot::{Needle, Point, Pose, StereoCalibration, StereoCamera, StereoFrame};
+use stitch_robot::{Needle, Point, Pose, StereoCalibration, StereoCamera, StereoFrame, Vector};
+
+/// Both views' masks, the cloud from them and the diagnostics so far.
+type Found = (Masks, Masks, Vec<Point>, Diagnostics);
+
+/// Places for the needle tried in turn, at most (the segmenter's ranking).
+const MAX_CANDIDATES: usize = 3;
 
 /// The swage's radius as a multiple of the wire's (a crimped swage is thicker; modelling
 /// choice shared with the renderer's needle).
@@ -72,6 +79,22 @@ pub struct PipelineParams {
     pub min_tip_seen_m: f64,
     /// Estimates less confident than this are refused.
     pub min_confidence: f64,
+    /// Least share of the arc whose wire the refined circle runs down in both views for
+    /// the images to decide the fit (otherwise the cloud's tests do).
+    pub min_image_support: f64,
+    /// The wire's middle within this of the projected circle counts as on it, pixels.
+    pub image_tolerance_px: f64,
+    /// Along the refined circle, gaps in the wire up to this are bridged when the arc the
+    /// images show is followed past the cloud's, rad.
+    pub image_gap_rad: f64,
+    /// A refinement that moves the centre of a circle the cloud holds farther than this is
+    /// not taken, m.
+    pub image_max_shift_m: f64,
+    /// Nor one that tilts it more than this, rad.
+    pub image_max_tilt_rad: f64,
+    /// The images decide a fit only if the camera sees the circle's plane at least this
+    /// far from edge on, rad.
+    pub image_min_view_rad: f64,
 }
 
 impl Default for PipelineParams {
@@ -98,6 +121,12 @@ impl Default for PipelineParams {
             min_points_in_tissue: 15,
             min_tip_seen_m: 0.002,
             min_confidence: 0.5,
+            min_image_support: 0.8,
+            image_tolerance_px: 1.5,
+            image_gap_rad: 12f64.to_radians(),
+            image_max_shift_m: 0.0006,
+            image_max_tilt_rad: 3f64.to_radians(),
+            image_min_view_rad: 15f64.to_radians(),
         }
     }
 }
@@ -138,6 +167,12 @@ pub struct Diagnostics {
     pub thread_px: [usize; 2],
     /// The wire's width near each observed end against 3 mm along the arc.
     pub taper: [Option<f64>; 2],
+    /// Share of the arc the images held on the circle refined against both views' masks
+    /// (`None`: not refined, or not held; the cloud's tests decided).
+    pub image_support: Option<f64>,
+    /// The circle came from the left silhouette's ellipse, not from the cloud (which could
+    /// not be fitted).
+    pub from_silhouettes: bool,
     /// Stage times.
     pub times: StageTimes,
 }
@@ -207,6 +242,15 @@ pub struct NeedlePipeline {
     pub calibration: StereoCalibration,
     /// Run the two views' segmentation on two threads.
     pub parallel: bool,
+}
+
+/// A circle fitted to the needle, the arc of it seen, and how well: the share of the
+/// points (or of the arc's samples in the images) on it, and how tightly they hug it (0 to 1).
+struct Fitted {
+    circle: Circle,
+    arc: fit::ArcExtent,
+    share: f64,
+    tight: f64,
 }
 
 /// An estimate and how it was found.
@@ -285,7 +329,7 @@ impl NeedlePipeline {
                 });
             }
         }
-        let (lm, rm, range) = self.masks(left, right, roi, None)?;
+        let (lm, rm, range) = self.masks(left, right, roi, None, 0)?.ok_or(no_left())?;
         self.matcher.disparity(&StereoInput {
             left,
             right,
@@ -378,7 +422,8 @@ impl NeedlePipeline {
         right: &stitch_robot::RgbImage,
         within: Option<Rect>,
         region: Option<Region>,
-    ) -> Result<(Masks, Masks, [u32; 2]), PerceptionError> {
+        candidate: usize,
+    ) -> Result<Option<(Masks, Masks, [u32; 2])>, PerceptionError> {
         let c = &self.calibration;
         let full = Rect::full(c.width, c.height);
         let seg = self.segmenter.as_ref();
@@ -395,8 +440,13 @@ impl NeedlePipeline {
             let lm = if region.whole {
                 Some(seg.segment(left, rect)?).filter(|m| m.needle_count() > 0)
             } else {
-                seg.locate(left, rect)
-                    .map(|roi| seg.segment(left, roi))
+                let places = seg.candidates(left, rect);
+                if candidate > 0 && candidate >= places.len() {
+                    return Ok(None);
+                }
+                places
+                    .get(candidate)
+                    .map(|&roi| seg.segment(left, roi))
                     .transpose()?
             }
             .ok_or(PerceptionError::NoMask {
@@ -410,16 +460,23 @@ impl NeedlePipeline {
                     view: "right".into(),
                 });
             }
-            return Ok((lm, rm, range));
+            return Ok(Some((lm, rm, range)));
         }
         let hl = within.unwrap_or(full);
         // The left view is searched where asked; the right view only where the same needle
         // can appear: the left region's rows (rectified views), shifted by the calibrated
         // disparities — another bright thing elsewhere in the right view is not a candidate.
         let [cmin, cmax] = self.calibrated_range();
-        let lroi = seg.locate(left, hl).ok_or(PerceptionError::NoMask {
-            view: "left".into(),
-        })?;
+        let places = seg.candidates(left, hl);
+        if candidate > 0 && candidate >= places.len() {
+            return Ok(None);
+        }
+        let lroi = places
+            .get(candidate)
+            .copied()
+            .ok_or(PerceptionError::NoMask {
+                view: "left".into(),
+            })?;
         let hr = right_band(&lroi, [cmin, cmax]).clipped(c.width, c.height);
         let rroi = seg.locate(right, hr).ok_or(PerceptionError::NoMask {
             view: "right".into(),
@@ -449,7 +506,7 @@ impl NeedlePipeline {
                 ),
             });
         }
-        Ok((lm, rm, [lo, hi as u32]))
+        Ok(Some((lm, rm, [lo, hi as u32])))
     }
 
     fn run(
@@ -461,10 +518,71 @@ impl NeedlePipeline {
         seed: u64,
     ) -> Result<PipelineOutput, PerceptionError> {
         let c = &self.calibration;
-        let p = &self.params;
         check_image(left, c.width, c.height, "left")?;
         check_image(right, c.width, c.height, "right")?;
-        let (lm, cloud, mut diag) = self.cloud(left, right, region)?;
+        let first = self
+            .run_candidate(left, right, region, jaw, seed, 0)
+            .unwrap_or(Err(no_left()));
+        // The segmenter's likeliest place may be a patch of wet glare: the places it ranks lower are tried in turn while no needle can be fitted
+        // (a 12 mm circle both views hold is not found in glare). The answer is the first
+        // estimate, or the failure that got furthest.
+        let refitable = |e: &PerceptionError| {
+            matches!(
+                e,
+                PerceptionError::BadFit { .. }
+                    | PerceptionError::TooFewPoints { .. }
+                    | PerceptionError::NoMask { .. }
+            )
+        };
+        if !first.as_ref().is_err_and(refitable) {
+            return first;
+        }
+        let mut answer = first;
+        for k in 1..MAX_CANDIDATES {
+            let Some(next) = self.run_candidate(left, right, region, jaw, seed, k) else {
+                break;
+            };
+            let further = |e: &PerceptionError| match e {
+                PerceptionError::NoMask { .. } => 0,
+                PerceptionError::TooFewPoints { .. } => 1,
+                PerceptionError::BadFit { .. } => 2,
+                _ => 3,
+            };
+            match (&answer, &next) {
+                (_, Ok(_)) => return next,
+                (Err(a), Err(b)) if further(b) > further(a) => answer = next,
+                _ => {}
+            }
+        }
+        answer
+    }
+
+    /// The pipeline on the segmenter's `candidate`-th place for the needle (full frame).
+    fn run_candidate(
+        &self,
+        left: &stitch_robot::RgbImage,
+        right: &stitch_robot::RgbImage,
+        region: Option<Region>,
+        jaw: Option<&JawHint>,
+        seed: u64,
+        candidate: usize,
+    ) -> Option<Result<PipelineOutput, PerceptionError>> {
+        match self.cloud(left, right, region, candidate) {
+            Ok(Some(found)) => Some(self.fit(found, jaw, seed)),
+            Ok(None) => None,
+            Err(e) => Some(Err(e)),
+        }
+    }
+
+    /// Stages 4 and 5 on a cloud: the circle, the ends, the pose.
+    fn fit(
+        &self,
+        (lm, rm, cloud, mut diag): Found,
+        jaw: Option<&JawHint>,
+        seed: u64,
+    ) -> Result<PipelineOutput, PerceptionError> {
+        let c = &self.calibration;
+        let p = &self.params;
         let t3 = Instant::now();
         if cloud.len() < p.min_points {
             return Err(PerceptionError::TooFewPoints {
@@ -474,44 +592,20 @@ impl NeedlePipeline {
         }
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let r = self.needle.radius_m;
-        let (plane, plane_inliers) =
-            fit::ransac_plane(&cloud, &p.ransac, &mut rng).ok_or_else(|| {
-                PerceptionError::BadFit {
-                    why: "no plane through the points".into(),
-                }
-            })?;
-        diag.plane_inliers = plane_inliers.len();
-        let on_plane: Vec<Point> = plane_inliers.iter().map(|&i| cloud[i]).collect();
-        let (circle, inliers) = fit::ransac_circle(&on_plane, &plane, r, &p.ransac, &mut rng)
-            .ok_or_else(|| PerceptionError::BadFit {
-                why: format!("no {:.1} mm circle through the points", r * 1e3),
-            })?;
-        let pts: Vec<Point> = inliers.iter().map(|&i| on_plane[i]).collect();
-        diag.circle_inliers = pts.len();
-        diag.rms_m = (pts.iter().map(|q| circle.distance(q).powi(2)).sum::<f64>()
-            / pts.len().max(1) as f64)
-            .sqrt();
-        // The share of the points near the circle that are on it: clutter beside the
-        // needle (glints, a jaw's metal) counts against a fit, things farther off do not.
-        let near = cloud
-            .iter()
-            .filter(|q| circle.distance(q) <= p.share_zone_m)
-            .count()
-            .max(pts.len());
-        let share = pts.len() as f64 / near as f64;
-        if pts.len() < p.min_points || share < p.min_inlier_share {
-            return Err(PerceptionError::BadFit {
-                why: format!(
-                    "{} of {} points near the best circle on it ({:.0} %)",
-                    pts.len(),
-                    near,
-                    100.0 * share
-                ),
-            });
-        }
-        let arc = arc_extent(&pts, &circle).ok_or_else(|| PerceptionError::BadFit {
-            why: "no arc".into(),
-        })?;
+        let images = Images::new(c, &lm, &rm, self.needle.wire_diameter_m);
+        // From the cloud; if it cannot be fitted, from the silhouettes alone.
+        let Fitted {
+            circle,
+            arc,
+            share,
+            tight,
+        } = match self.fit_cloud(&cloud, &images, &mut rng, &mut diag) {
+            Ok(f) => f,
+            Err(e @ PerceptionError::BadFit { .. }) => self
+                .fit_silhouettes(&images, &mut rng, &mut diag)
+                .ok_or(e)?,
+            Err(e) => return Err(e),
+        };
         diag.arc_rad = arc.extent;
         if arc.extent < p.min_arc_rad {
             return Err(PerceptionError::BadFit {
@@ -537,9 +631,11 @@ impl NeedlePipeline {
         let cap = self.needle.wire_diameter_m / 2.0 / r;
         let (lo_end, hi_end) = (arc.start + cap, arc.start + arc.extent - cap);
         let full = (arc.extent - PI).abs() <= p.full_arc_tolerance_rad;
+        // Outward along the circle past each end.
+        let tangent = |a: f64| e2 * a.cos() - e1 * a.sin();
         let threads = [
-            self.thread_near(&lm, &at(lo_end)),
-            self.thread_near(&lm, &at(hi_end)),
+            self.thread_near(&lm, &at(lo_end), &-tangent(lo_end)),
+            self.thread_near(&lm, &at(hi_end), &tangent(hi_end)),
         ];
         // The tip tapers: the wire's width in the image near an end against its width 3 mm
         // along, for each observed end (the direction along the arc into the needle).
@@ -612,7 +708,7 @@ impl NeedlePipeline {
             nalgebra::Translation3::from(circle.center.coords),
             UnitQuaternion::from_rotation_matrix(&rot),
         );
-        let confidence = confidence(&arc, share, diag.rms_m, p, full);
+        let confidence = confidence(&arc, share, tight, full);
         diag.times.fit = t3.elapsed();
         if confidence < p.min_confidence {
             return Err(PerceptionError::Uncertain { confidence });
@@ -622,6 +718,194 @@ impl NeedlePipeline {
             confidence,
             diagnostics: diag,
         })
+    }
+
+    /// The circle from the cloud (RANSAC plane, then circle of the needle's radius),
+    /// refined against both views' masks; the images decide if they hold it, the cloud's
+    /// share test otherwise.
+    fn fit_cloud(
+        &self,
+        cloud: &[Point],
+        images: &Images,
+        rng: &mut ChaCha8Rng,
+        diag: &mut Diagnostics,
+    ) -> Result<Fitted, PerceptionError> {
+        let p = &self.params;
+        let r = self.needle.radius_m;
+        let (plane, plane_inliers) =
+            fit::ransac_plane(cloud, &p.ransac, rng).ok_or_else(|| PerceptionError::BadFit {
+                why: "no plane through the points".into(),
+            })?;
+        diag.plane_inliers = plane_inliers.len();
+        let on_plane: Vec<Point> = plane_inliers.iter().map(|&i| cloud[i]).collect();
+        let (circle, inliers) = fit::ransac_circle(&on_plane, &plane, r, &p.ransac, rng)
+            .ok_or_else(|| PerceptionError::BadFit {
+                why: format!("no {:.1} mm circle through the points", r * 1e3),
+            })?;
+        let pts: Vec<Point> = inliers.iter().map(|&i| on_plane[i]).collect();
+        diag.circle_inliers = pts.len();
+        diag.rms_m = (pts.iter().map(|q| circle.distance(q).powi(2)).sum::<f64>()
+            / pts.len().max(1) as f64)
+            .sqrt();
+        // The share of the points near the circle that are on it: clutter beside the
+        // needle (glints, a jaw's metal) counts against a fit, things farther off do not.
+        let near = cloud
+            .iter()
+            .filter(|q| circle.distance(q) <= p.share_zone_m)
+            .count()
+            .max(pts.len());
+        let share = pts.len() as f64 / near as f64;
+        let arc = arc_extent(&pts, &circle).ok_or_else(|| PerceptionError::BadFit {
+            why: "no arc".into(),
+        })?;
+        // The circle moved onto the wire in both views' masks; if the images hold it, it
+        // and the arc they show replace the cloud's.
+        let tried = images.refine(&circle, arc.start, arc.extent, p.image_tolerance_px);
+        // A cloud that passes its own tests is trusted over a refinement that moved far
+        // from it: the silhouettes of a wire seen near edge-on, or beside a jaw or the
+        // thread, can hold a tilted circle as well as the right one.
+        let cloud_held = pts.len() >= p.min_points && share >= p.min_inlier_share;
+        let refined = tried.filter(|f| {
+            f.support >= p.min_image_support
+                && !self.edge_on(&f.circle)
+                && !(cloud_held
+                    && ((f.circle.center - circle.center).norm() > p.image_max_shift_m
+                        || f.circle.normal.dot(&circle.normal).abs() < p.image_max_tilt_rad.cos()))
+        });
+        diag.image_support = refined.map(|f| f.support);
+        let (circle, arc, share, tight) = match refined {
+            Some(f) => {
+                // The cloud's arc on the refined circle, or the images' if they show more
+                // of it without running past a half circle (onto the thread or a jaw).
+                let arc = self
+                    .image_arc(images, &f, arc.extent)
+                    .filter(|a| a.extent > arc.extent && a.extent <= PI + p.max_overshoot_rad)
+                    .unwrap_or(fit::ArcExtent {
+                        start: f.start,
+                        ..arc
+                    });
+                (f.circle, arc, f.support, self.image_tightness(&f))
+            }
+            None => {
+                if pts.len() < p.min_points || share < p.min_inlier_share {
+                    return Err(PerceptionError::BadFit {
+                        why: format!(
+                            "{} of {} points near the best circle on it ({:.0} %); {}",
+                            pts.len(),
+                            near,
+                            100.0 * share,
+                            tried.map_or("the images do not show it".into(), |f| format!(
+                                "both views' wire on {:.0} % of its arc (RMS {:.1} px)",
+                                100.0 * f.support,
+                                f.rms_px
+                            ))
+                        ),
+                    });
+                }
+                let t = p.ransac.circle_threshold_m;
+                (
+                    circle,
+                    arc,
+                    share,
+                    (2.0 * (t - diag.rms_m) / t).clamp(0.0, 1.0),
+                )
+            }
+        };
+        Ok(Fitted {
+            circle,
+            arc,
+            share,
+            tight,
+        })
+    }
+
+    /// The circle from the silhouettes alone, for a cloud that cannot be fitted (a rig whose
+    /// disparity step spans more depth than the RANSAC thresholds, clutter beside the
+    /// wire): the two circles the left mask's ellipse allows, each refined against both
+    /// views; the one the images hold best, if they hold it.
+    fn fit_silhouettes(
+        &self,
+        images: &Images,
+        rng: &mut ChaCha8Rng,
+        diag: &mut Diagnostics,
+    ) -> Option<Fitted> {
+        let p = &self.params;
+        let step = 1f64.to_radians();
+        let f = images
+            .circles_from_left_silhouette(self.needle.radius_m, rng)
+            .iter()
+            .filter_map(|k| {
+                let (start, extent) =
+                    images.left_arc(k, 2.0 * p.image_tolerance_px, step, p.image_gap_rad)?;
+                let extent = extent.min(PI + p.max_overshoot_rad);
+                Some((
+                    images.refine(k, start, extent, p.image_tolerance_px)?,
+                    extent,
+                ))
+            })
+            .filter(|(f, _)| f.support >= p.min_image_support && !self.edge_on(&f.circle))
+            .max_by(|a, b| a.0.support.total_cmp(&b.0.support))?;
+        let (f, extent) = f;
+        let arc = self.image_arc(images, &f, extent)?;
+        diag.image_support = Some(f.support);
+        diag.from_silhouettes = true;
+        Some(Fitted {
+            circle: f.circle,
+            arc,
+            share: f.support,
+            tight: self.image_tightness(&f),
+        })
+    }
+
+    /// Whether the camera sees the circle within `image_min_view_rad` of edge on: its
+    /// silhouette is then nearly a line that many circles project onto, and the images
+    /// cannot decide the fit.
+    fn edge_on(&self, circle: &Circle) -> bool {
+        let eye = self.calibration.camera_to_robot.translation.vector;
+        let ray = (circle.center.coords - eye).normalize();
+        circle.normal.dot(&ray).abs() < self.params.image_min_view_rad.sin()
+    }
+
+    /// How tightly the wire hugs a refined circle, 0 to 1: full marks within half the
+    /// tolerance.
+    fn image_tightness(&self, f: &Refined) -> f64 {
+        let t = self.params.image_tolerance_px;
+        (2.0 * (t - f.rms_px) / t).clamp(0.0, 1.0)
+    }
+
+    /// The arc the images show on a refined circle: the cloud's arc (`extent` from the
+    /// refined start), followed past either end while the wire lies on the circle in both
+    /// views, over gaps up to `image_gap_rad`; `None` if none of it is seen.
+    fn image_arc(&self, images: &Images, f: &Refined, extent: f64) -> Option<fit::ArcExtent> {
+        let p = &self.params;
+        let step = 0.5f64.to_radians();
+        let seen = |a: f64| images.seen_at(&f.circle, a, p.image_tolerance_px);
+        let core: Vec<f64> = (0..=(extent / step) as usize)
+            .map(|i| f.start + i as f64 * step)
+            .filter(|&a| seen(a))
+            .collect();
+        let (mut lo, mut hi) = (*core.first()?, *core.last()?);
+        let limit = PI + p.max_overshoot_rad + p.image_gap_rad;
+        let mut angles = core;
+        for dir in [-1.0, 1.0] {
+            let mut a = if dir < 0.0 { lo } else { hi };
+            let mut gap = 0.0;
+            while gap <= p.image_gap_rad && hi - lo <= limit {
+                a += dir * step;
+                gap += step;
+                if seen(a) {
+                    angles.push(a);
+                    gap = 0.0;
+                    if dir < 0.0 { lo = a } else { hi = a }
+                }
+            }
+        }
+        let (e1, e2) = plane_basis(&f.circle.normal);
+        let pts: Vec<Point> = angles
+            .iter()
+            .map(|a| f.circle.center + (e1 * a.cos() + e2 * a.sin()) * f.circle.radius)
+            .collect();
+        arc_extent(&pts, &f.circle)
     }
 
     /// The needle mask's width across the projected arc at `angle` on `circle`, pixels
@@ -712,10 +996,13 @@ impl NeedlePipeline {
         left: &stitch_robot::RgbImage,
         right: &stitch_robot::RgbImage,
         region: Option<Region>,
-    ) -> Result<(Masks, Vec<Point>, Diagnostics), PerceptionError> {
+        candidate: usize,
+    ) -> Result<Option<Found>, PerceptionError> {
         let c = &self.calibration;
         let t0 = Instant::now();
-        let (lm, rm, range) = self.masks(left, right, None, region)?;
+        let Some((lm, rm, range)) = self.masks(left, right, None, region, candidate)? else {
+            return Ok(None);
+        };
         let range = self.narrowed(left, right, &lm, &rm, range);
         let t1 = Instant::now();
         let disp = self.matcher.disparity(&StereoInput {
@@ -742,6 +1029,8 @@ impl NeedlePipeline {
             arc_rad: 0.0,
             thread_px: [0, 0],
             taper: [None, None],
+            image_support: None,
+            from_silhouettes: false,
             times: StageTimes {
                 segment: t1 - t0,
                 disparity: t2 - t1,
@@ -749,7 +1038,7 @@ impl NeedlePipeline {
                 fit: Duration::ZERO,
             },
         };
-        Ok((lm, cloud, diag))
+        Ok(Some((lm, rm, cloud, diag)))
     }
 
     /// The pose of a needle lodged in tissue through known holes: the circle of the needle's
@@ -774,7 +1063,7 @@ impl NeedlePipeline {
             whole: true,
             ..self.region_near(&mid)
         };
-        let (_, cloud, mut diag) = self.cloud(left, right, Some(region))?;
+        let (_, _, cloud, mut diag) = self.cloud(left, right, Some(region), 0)?.ok_or(no_left())?;
         let t3 = Instant::now();
         if cloud.len() < p.min_points_in_tissue {
             return Err(PerceptionError::TooFewPoints {
@@ -936,15 +1225,22 @@ impl NeedlePipeline {
         })
     }
 
-    /// Thread pixels in the left view within `swage_search_m` of a robot-frame point.
-    fn thread_near(&self, masks: &Masks, p: &Point) -> usize {
+    /// Thread pixels in the left view within `swage_search_m` of a robot-frame end of the
+    /// wire, on its `outward` side (the direction past the end along the circle).
+    fn thread_near(&self, masks: &Masks, p: &Point, outward: &Vector) -> usize {
         let c = &self.calibration;
-        let q = c.camera_to_robot.inverse() * p;
-        if q.z <= 1e-6 {
+        let (Some([u, v]), Some([ou, ov])) = (
+            c.left_pixel(p),
+            c.left_pixel(&(p + outward * self.params.swage_search_m)),
+        ) else {
             return 0;
-        }
-        let (u, v) = (c.fx * q.x / q.z + c.cx, c.fy * q.y / q.z + c.cy);
-        let rad = (c.fx * self.params.swage_search_m / q.z).max(2.0);
+        };
+        let z = (c.camera_to_robot.inverse() * p).z;
+        let rad = (c.fx * self.params.swage_search_m / z).max(2.0);
+        // The thread leaves the swage from its end: pixels more than a fifth of the radius
+        // back along the wire are a thread lying across the needle, not leaving it.
+        let len = (ou - u).hypot(ov - v).max(1e-9);
+        let (du, dv) = ((ou - u) / len, (ov - v) / len);
         let (x0, x1) = (
             (u - rad).floor().max(0.0) as u32,
             (u + rad).ceil().max(0.0) as u32,
@@ -957,7 +1253,10 @@ impl NeedlePipeline {
         for y in y0..=y1 {
             for x in x0..=x1 {
                 let (dx, dy) = (x as f64 + 0.5 - u, y as f64 + 0.5 - v);
-                if dx * dx + dy * dy <= rad * rad && masks.is_thread(x, y) {
+                if dx * dx + dy * dy <= rad * rad
+                    && dx * du + dy * dv >= -0.2 * rad
+                    && masks.is_thread(x, y)
+                {
                     n += 1;
                 }
             }
@@ -966,22 +1265,21 @@ impl NeedlePipeline {
     }
 }
 
-/// How much to trust a fit, 0 to 1: the product of the share of points on the circle, how
-/// much of the half circle the points cover (full marks from half of it), how tightly they
-/// hug the circle (full marks within half the inlier threshold), and 0.9 if an end is hidden.
-fn confidence(
-    arc: &fit::ArcExtent,
-    inlier_share: f64,
-    rms_m: f64,
-    p: &PipelineParams,
-    full: bool,
-) -> f64 {
+/// How much to trust a fit, 0 to 1: the product of the share of points on the circle (or of
+/// the arc the images hold), how much of the half circle is seen (full marks from half of
+/// it), how tightly the points or the wire hug the circle (`tight`: full marks within half
+/// the threshold), and 0.9 if an end is hidden.
+fn confidence(arc: &fit::ArcExtent, inlier_share: f64, tight: f64, full: bool) -> f64 {
     let observed = ((arc.extent - arc.largest_inner_gap) / PI).clamp(0.0, 1.0);
     let coverage = (observed / 0.5).min(1.0);
-    let t = p.ransac.circle_threshold_m;
-    let tight = (2.0 * (t - rms_m) / t).clamp(0.0, 1.0);
     let both_ends = if full { 1.0 } else { 0.9 };
     (inlier_share.clamp(0.0, 1.0).sqrt() * coverage * tight * both_ends).clamp(0.0, 1.0)
+}
+
+fn no_left() -> PerceptionError {
+    PerceptionError::NoMask {
+        view: "left".into(),
+    }
 }
 
 /// The needle's points in the robot frame: every left-image pixel that is needle and has a

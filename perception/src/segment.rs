@@ -107,6 +107,13 @@ pub trait Segmenter: Send + Sync + std::fmt::Debug {
     /// Where the needle appears in `image`, searched over `within`: a region of interest
     /// around it (including margin for the thread near it), or `None` if no needle is seen.
     fn locate(&self, image: &RgbImage, within: Rect) -> Option<Rect>;
+    /// The places the needle may be in `image`, searched over `within`, likeliest first
+    /// (`locate`'s answer first): what a pipeline tries in turn when the first holds no
+    /// needle it can fit (a patch of wet glare ranked above it). A segmenter that ranks only
+    /// one place gives that one.
+    fn candidates(&self, image: &RgbImage, within: Rect) -> Vec<Rect> {
+        self.locate(image, within).into_iter().collect()
+    }
     /// Needle and thread masks over `roi`; an error only when the segmenter itself fails
     /// (a learned model that cannot run), never for an image without a needle.
     fn segment(&self, image: &RgbImage, roi: Rect) -> Result<Masks, PerceptionError>;
@@ -128,6 +135,9 @@ impl PartialEq for SharedSegmenter {
 impl Segmenter for SharedSegmenter {
     fn locate(&self, image: &RgbImage, within: Rect) -> Option<Rect> {
         self.0.locate(image, within)
+    }
+    fn candidates(&self, image: &RgbImage, within: Rect) -> Vec<Rect> {
+        self.0.candidates(image, within)
     }
     fn segment(&self, image: &RgbImage, roi: Rect) -> Result<Masks, PerceptionError> {
         self.0.segment(image, roi)
@@ -211,15 +221,18 @@ impl ColorSegmenter {
     }
 }
 
-impl Segmenter for ColorSegmenter {
-    fn locate(&self, image: &RgbImage, within: Rect) -> Option<Rect> {
+impl ColorSegmenter {
+    /// Up to `max` places the needle may be, likeliest first: around each group of hits
+    /// that is thin and bent, largest first (or the largest group if none is), with the
+    /// pieces that join it.
+    fn ranked(&self, image: &RgbImage, within: Rect, max: usize) -> Vec<Rect> {
         let within = within.clipped(image.width, image.height);
         let s = self.stride.max(1);
         let w = image.width as usize;
         let gw = within.width().div_ceil(s) as usize;
         let gh = within.height().div_ceil(s) as usize;
         if gw == 0 || gh == 0 {
-            return None;
+            return Vec::new();
         }
         let mut grid = vec![0u32; gw * gh]; // 0: nothing, u32::MAX: hit, else a label
         let mut hits = 0usize;
@@ -235,7 +248,7 @@ impl Segmenter for ColorSegmenter {
             }
         }
         if hits < self.min_hits {
-            return None;
+            return Vec::new();
         }
         let groups = label_groups(&mut grid, gw, gh, self.bridge_cells as i64);
         // The needle is the largest group that is thin for its extent and bent: a half
@@ -244,14 +257,40 @@ impl Segmenter for ColorSegmenter {
         // shaft is straight. Groups too small to have a shape count as both.
         let thin = |g: &Group| g.extent() < MIN_SHAPED_CELLS || g.fill() <= self.max_fill;
         let bent = |g: &Group| g.extent() < MIN_SHAPED_CELLS || g.bend() >= self.min_bend;
-        let best = groups
+        let mut order: Vec<&Group> = groups
             .iter()
             .filter(|g| g.count >= self.min_hits && thin(g) && bent(g))
-            .max_by_key(|g| g.count)
-            .or_else(|| groups.iter().max_by_key(|g| g.count))?;
-        if best.count < self.min_hits {
-            return None;
+            .collect();
+        order.sort_by_key(|g| std::cmp::Reverse(g.count));
+        if order.is_empty() {
+            order.extend(groups.iter().max_by_key(|g| g.count));
         }
+        let mut out: Vec<Rect> = Vec::new();
+        for best in order.into_iter().take(max) {
+            if best.count < self.min_hits {
+                break;
+            }
+            let rect = self.around(best, &groups, &thin, &bent, within, image);
+            let inside =
+                |o: &Rect| rect.x0 >= o.x0 && rect.y0 >= o.y0 && rect.x1 <= o.x1 && rect.y1 <= o.y1;
+            if !out.iter().any(inside) {
+                out.push(rect);
+            }
+        }
+        out
+    }
+
+    /// The region around the group `best` and the groups that join it, grown by the margin.
+    fn around(
+        &self,
+        best: &Group,
+        groups: &[Group],
+        thin: &dyn Fn(&Group) -> bool,
+        bent: &dyn Fn(&Group) -> bool,
+        within: Rect,
+        image: &RgbImage,
+    ) -> Rect {
+        let s = self.stride.max(1);
         // Pieces of the same needle split by an occluder (the thread, a jaw) join it: groups
         // that are thin (and bent, or half its size or less), within `join_px` or half the
         // needle's extent; and small groups (a short piece of wire has no shape to judge).
@@ -286,7 +325,7 @@ impl Segmenter for ColorSegmenter {
             near
         };
         let mut b = best.bbox;
-        for g in &groups {
+        for g in groups {
             let joins = if shaped(g) {
                 gap(g, &b) <= far
             } else {
@@ -307,7 +346,17 @@ impl Segmenter for ColorSegmenter {
             x1: within.x0 + (b[2] as u32 + 1) * s,
             y1: within.y0 + (b[3] as u32 + 1) * s,
         };
-        Some(rect.grown(self.margin_px, image.width, image.height))
+        rect.grown(self.margin_px, image.width, image.height)
+    }
+}
+
+impl Segmenter for ColorSegmenter {
+    fn locate(&self, image: &RgbImage, within: Rect) -> Option<Rect> {
+        self.ranked(image, within, 1).pop()
+    }
+
+    fn candidates(&self, image: &RgbImage, within: Rect) -> Vec<Rect> {
+        self.ranked(image, within, 3)
     }
 
     fn segment(&self, image: &RgbImage, roi: Rect) -> Result<Masks, PerceptionError> {

@@ -83,18 +83,18 @@ impl SensingConfig {
     }
 
     /// The noise of this project's stereo pipeline (`stitch run --perception fitted`), fitted
-    /// to `stitch bench perception` on 500 rendered frames (semi-global matching, holding jaw
-    /// known): centre error median 0.11 mm → σ per axis = 0.11 / 1.54 ≈ 0.07 mm (the median
-    /// of a 3D Gaussian's norm is 1.54 σ); normal error median 0.38° → σ per axis = 0.38 /
-    /// 1.18 ≈ 0.32° (the median of a 2D Gaussian's norm is 1.18 σ); typed failures 2.6 % →
-    /// dropouts; one 30 Hz frame per estimate. The pipeline showed no better corner, so both
-    /// regions are the same. `perception/tests/pipeline.rs` checks these against a fresh
-    /// measurement.
+    /// to `stitch bench perception --sets own --frames 500 --seed 1 --matchers sgm` (the
+    /// circle refined against both views' masks, holding jaw known): centre error median
+    /// 0.05 mm → σ per axis = 0.05 / 1.54 ≈ 0.03 mm (the median of a 3D Gaussian's norm is
+    /// 1.54 σ); normal error median 0.19° → σ per axis = 0.19 / 1.18 ≈ 0.16° (the median of
+    /// a 2D Gaussian's norm is 1.18 σ); typed failures 3.0 % → dropouts; one 30 Hz frame per
+    /// estimate. The pipeline showed no better corner, so both regions are the same.
+    /// `eval/tests/pipeline.rs` checks these against a fresh measurement.
     pub fn fitted_to_pipeline() -> Self {
         let spec = NoiseSpec {
-            sigma_position_m: 0.00007,
-            sigma_rotation_rad: 0.32f64.to_radians(),
-            p_dropout: 0.026,
+            sigma_position_m: 0.00003,
+            sigma_rotation_rad: 0.16f64.to_radians(),
+            p_dropout: 0.03,
         };
         Self {
             estimate_time_s: 1.0 / 30.0,
