@@ -95,6 +95,8 @@ pub struct PipelineParams {
     /// The images decide a fit only if the camera sees the circle's plane at least this
     /// far from edge on, rad.
     pub image_min_view_rad: f64,
+    /// Least arc seen when the images decide the circle (`min_arc_rad` otherwise), rad.
+    pub image_min_arc_rad: f64,
 }
 
 impl Default for PipelineParams {
@@ -127,6 +129,7 @@ impl Default for PipelineParams {
             image_max_shift_m: 0.0006,
             image_max_tilt_rad: 3f64.to_radians(),
             image_min_view_rad: 15f64.to_radians(),
+            image_min_arc_rad: 110f64.to_radians(),
         }
     }
 }
@@ -509,6 +512,7 @@ impl NeedlePipeline {
         Ok(Some((lm, rm, [lo, hi as u32])))
     }
 
+    /// The whole pipeline on a pair: searched in `region` if given, else over the frames.
     fn run(
         &self,
         left: &stitch_robot::RgbImage,
@@ -523,9 +527,10 @@ impl NeedlePipeline {
         let first = self
             .run_candidate(left, right, region, jaw, seed, 0)
             .unwrap_or(Err(no_left()));
-        // The segmenter's likeliest place may be a patch of wet glare: the places it ranks lower are tried in turn while no needle can be fitted
-        // (a 12 mm circle both views hold is not found in glare). The answer is the first
-        // estimate, or the failure that got furthest.
+        // The segmenter's likeliest place may be a patch of wet glare: the places it ranks
+        // lower are tried in turn while no needle can be fitted (a 12 mm circle both views
+        // hold is not found in glare). The answer is the first estimate, or the failure
+        // that got furthest.
         let refitable = |e: &PerceptionError| {
             matches!(
                 e,
@@ -607,12 +612,18 @@ impl NeedlePipeline {
             Err(e) => return Err(e),
         };
         diag.arc_rad = arc.extent;
-        if arc.extent < p.min_arc_rad {
+        // A circle both views hold is placed well from less of its arc than a cloud's.
+        let min_arc = if diag.image_support.is_some() {
+            p.image_min_arc_rad
+        } else {
+            p.min_arc_rad
+        };
+        if arc.extent < min_arc {
             return Err(PerceptionError::BadFit {
                 why: format!(
                     "only {:.0}° of the needle's arc seen (at least {:.0}° needed)",
                     arc.extent.to_degrees(),
-                    p.min_arc_rad.to_degrees()
+                    min_arc.to_degrees()
                 ),
             });
         }

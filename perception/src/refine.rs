@@ -316,9 +316,10 @@ impl<'a> Images<'a> {
             .iter()
             .map(|p| [(p[0] - u0) / scale, (p[1] - v0) / scale])
             .collect();
-        // The wire's half width and a pixel, in the scaled units (at a typical depth: the
-        // ellipse's own size says nothing of the wire's yet).
-        let tol = 2.5 / scale;
+        // Within the wire's half width and a pixel of the ellipse, in the scaled units: the
+        // wire's width from the mask, the shorter of each pixel's horizontal and vertical
+        // runs (between its width and √2 times it), the median over the mask.
+        let tol = (0.6 * wire_width_px(m)).max(2.5) / scale;
         let mut best: Option<(usize, [f64; 6])> = None;
         for _ in 0..300 {
             let idx: Vec<usize> = (0..5).map(|_| rng.random_range(0..pts.len())).collect();
@@ -459,6 +460,52 @@ fn carried_shift(from: &Circle, to: &Circle) -> f64 {
     let (n1, n2) = plane_basis(&to.normal);
     let carried = Rotation3::rotation_between(&from.normal, &to.normal).map_or(o1, |r| r * o1);
     carried.dot(&n2).atan2(carried.dot(&n1))
+}
+
+/// The median over a needle mask's pixels of the shorter of the horizontal and vertical
+/// runs through each, pixels (0 for an empty mask).
+fn wire_width_px(m: &Masks) -> f64 {
+    let (w, h) = (m.roi.width() as usize, m.roi.height() as usize);
+    let at = |x: usize, y: usize| m.needle[y * w + x] != 0;
+    let mut hrun = vec![0u32; w * h];
+    for y in 0..h {
+        let mut x = 0;
+        while x < w {
+            if !at(x, y) {
+                x += 1;
+                continue;
+            }
+            let x0 = x;
+            while x < w && at(x, y) {
+                x += 1;
+            }
+            for i in x0..x {
+                hrun[y * w + i] = (x - x0) as u32;
+            }
+        }
+    }
+    let mut widths: Vec<u32> = Vec::new();
+    for x in 0..w {
+        let mut y = 0;
+        while y < h {
+            if !at(x, y) {
+                y += 1;
+                continue;
+            }
+            let y0 = y;
+            while y < h && at(x, y) {
+                y += 1;
+            }
+            for j in y0..y {
+                widths.push(hrun[j * w + x].min((y - y0) as u32));
+            }
+        }
+    }
+    if widths.is_empty() {
+        return 0.0;
+    }
+    let mid = widths.len() / 2;
+    f64::from(*widths.select_nth_unstable(mid).1)
 }
 
 /// The conic `a x² + b xy + c y² + d x + e y + f = 0` through the points (least squares,
@@ -619,6 +666,13 @@ mod tests {
         }
     }
 
+    /// The camera, the true circle, and both views' masks of half of it (a 7 px wire).
+    fn half_circle_seen() -> (StereoCalibration, Circle, [Masks; 2]) {
+        let (c, t) = (camera(), truth());
+        let m = masks(&c, &t, 0.3, 0.3 + std::f64::consts::PI, 7.0);
+        (c, t, m)
+    }
+
     fn close(a: &Circle, b: &Circle) -> (f64, f64) {
         (
             (a.center - b.center).norm(),
@@ -628,9 +682,7 @@ mod tests {
 
     #[test]
     fn the_left_silhouette_of_a_half_circle_gives_the_circle_among_its_two_candidates() {
-        let c = camera();
-        let t = truth();
-        let [l, r] = masks(&c, &t, 0.3, 0.3 + std::f64::consts::PI, 7.0);
+        let (c, t, [l, r]) = half_circle_seen();
         let images = Images::new(&c, &l, &r, 0.0007);
         let mut rng = ChaCha8Rng::seed_from_u64(1);
         let cands = images.circles_from_left_silhouette(0.012, &mut rng);
@@ -646,9 +698,7 @@ mod tests {
 
     #[test]
     fn a_circle_off_in_depth_and_tilt_is_moved_onto_the_wire_in_both_views() {
-        let c = camera();
-        let t = truth();
-        let [l, r] = masks(&c, &t, 0.3, 0.3 + std::f64::consts::PI, 7.0);
+        let (c, t, [l, r]) = half_circle_seen();
         let images = Images::new(&c, &l, &r, 0.0007);
         let rot = Rotation3::new(Vector3::new(0.03, -0.02, 0.0));
         // 1.5 mm farther along the line of sight (6 px of disparity at this rig), 2° tilted.
@@ -669,9 +719,7 @@ mod tests {
 
     #[test]
     fn the_silhouettes_candidate_the_right_view_holds_is_the_circle() {
-        let c = camera();
-        let t = truth();
-        let [l, r] = masks(&c, &t, 0.3, 0.3 + std::f64::consts::PI, 7.0);
+        let (c, t, [l, r]) = half_circle_seen();
         let images = Images::new(&c, &l, &r, 0.0007);
         let mut rng = ChaCha8Rng::seed_from_u64(2);
         let best = images
@@ -689,9 +737,7 @@ mod tests {
 
     #[test]
     fn a_circle_the_masks_do_not_show_is_not_held() {
-        let c = camera();
-        let t = truth();
-        let [l, r] = masks(&c, &t, 0.3, 0.3 + std::f64::consts::PI, 7.0);
+        let (c, t, [l, r]) = half_circle_seen();
         let images = Images::new(&c, &l, &r, 0.0007);
         let elsewhere = Circle {
             center: t.center + Vector3::new(0.02, 0.0, 0.0),
