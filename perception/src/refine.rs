@@ -469,36 +469,14 @@ fn wire_width_px(m: &Masks) -> f64 {
     let at = |x: usize, y: usize| m.needle[y * w + x] != 0;
     let mut hrun = vec![0u32; w * h];
     for y in 0..h {
-        let mut x = 0;
-        while x < w {
-            if !at(x, y) {
-                x += 1;
-                continue;
-            }
-            let x0 = x;
-            while x < w && at(x, y) {
-                x += 1;
-            }
-            for i in x0..x {
-                hrun[y * w + i] = (x - x0) as u32;
-            }
+        for (x0, x1) in runs(w, |x| at(x, y)) {
+            hrun[y * w + x0..y * w + x1].fill((x1 - x0) as u32);
         }
     }
     let mut widths: Vec<u32> = Vec::new();
     for x in 0..w {
-        let mut y = 0;
-        while y < h {
-            if !at(x, y) {
-                y += 1;
-                continue;
-            }
-            let y0 = y;
-            while y < h && at(x, y) {
-                y += 1;
-            }
-            for j in y0..y {
-                widths.push(hrun[j * w + x].min((y - y0) as u32));
-            }
+        for (y0, y1) in runs(h, |y| at(x, y)) {
+            widths.extend((y0..y1).map(|y| hrun[y * w + x].min((y1 - y0) as u32)));
         }
     }
     if widths.is_empty() {
@@ -506,6 +484,24 @@ fn wire_width_px(m: &Masks) -> f64 {
     }
     let mid = widths.len() / 2;
     f64::from(*widths.select_nth_unstable(mid).1)
+}
+
+/// The runs `[start, end)` of indices below `len` where `on` holds.
+fn runs(len: usize, on: impl Fn(usize) -> bool) -> Vec<(usize, usize)> {
+    let mut out = Vec::new();
+    let mut i = 0;
+    while i < len {
+        if on(i) {
+            let start = i;
+            while i < len && on(i) {
+                i += 1;
+            }
+            out.push((start, i));
+        } else {
+            i += 1;
+        }
+    }
+    out
 }
 
 /// The conic `a x² + b xy + c y² + d x + e y + f = 0` through the points (least squares,

@@ -8,14 +8,12 @@ resumes, aborts and sees the run end aborted. Exits non-zero with the reason oth
 """
 
 import sys
-import tempfile
 import time
 
-from selenium import webdriver
-from selenium.webdriver.chrome.service import Service
+from headless import chromium
 from selenium.webdriver.common.by import By
 
-url, shot, chromium, chromedriver = sys.argv[1:5]
+url, shot, chromium_path, chromedriver = sys.argv[1:5]
 
 
 def wait_for(what, check, limit=60.0):
@@ -28,22 +26,7 @@ def wait_for(what, check, limit=60.0):
     raise SystemExit(f"timed out after {limit} s waiting for {what}")
 
 
-options = webdriver.ChromeOptions()
-options.binary_location = chromium
-for flag in (
-    "--headless=new",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-dev-shm-usage",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--window-size=1400,1250",
-    f"--user-data-dir={tempfile.mkdtemp()}",
-):
-    options.add_argument(flag)
-driver = webdriver.Chrome(service=Service(executable_path=chromedriver), options=options)
+driver = chromium(chromium_path, chromedriver)
 try:
     driver.get(url)
     state = lambda: driver.find_element(By.ID, "state").text

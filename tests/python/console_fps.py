@@ -8,28 +8,14 @@ frames the page draws over SECONDS (default 10) and prints the rate.
 """
 
 import sys
-import tempfile
 import time
 
-from selenium import webdriver
-from selenium.webdriver.chrome.service import Service
+from headless import chromium
 from selenium.webdriver.common.by import By
 
 url = sys.argv[1]
 seconds = float(sys.argv[2]) if len(sys.argv) > 2 else 10.0
-options = webdriver.ChromeOptions()
-options.binary_location = "/usr/bin/chromium"
-for flag in (
-    "--headless=new",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-dev-shm-usage",
-    "--no-first-run",
-    "--window-size=1400,1250",
-    f"--user-data-dir={tempfile.mkdtemp()}",
-):
-    options.add_argument(flag)
-driver = webdriver.Chrome(service=Service(executable_path="/usr/bin/chromedriver"), options=options)
+driver = chromium()
 try:
     driver.get(url)
     drawn = lambda: int(driver.find_element(By.TAG_NAME, "body").get_attribute("data-frames") or 0)
