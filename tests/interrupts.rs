@@ -102,7 +102,6 @@ fn run(commands: Vec<TimedCommand>, seed: u64) -> Ran {
         thread: ThreadConfig {
             catch_radius_m: 0.0,
             occlusion_radius_m: 0.0,
-            p_tangle_per_cinch: 0.0,
             ..ThreadConfig::default()
         },
         ..SceneConfig::default()

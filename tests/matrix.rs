@@ -126,7 +126,6 @@ fn scene(faults: FaultConfig) -> SceneConfig {
         thread: ThreadConfig {
             catch_radius_m: 0.0,
             occlusion_radius_m: 0.0,
-            p_tangle_per_cinch: 0.0,
             ..ThreadConfig::default()
         },
         faults,

@@ -36,7 +36,6 @@ fn tame_thread() -> ThreadConfig {
     ThreadConfig {
         catch_radius_m: 0.0,
         occlusion_radius_m: 0.0,
-        p_tangle_per_cinch: 0.0,
         ..ThreadConfig::default()
     }
 }
@@ -64,6 +63,51 @@ fn perfect_perception_and_no_faults_sutures_all_six_throws() {
         "{:?}",
         report.outcome
     );
+}
+
+/// The thread through a whole mission: no link made or lost (the sutured, looped, in-tissue
+/// and free lengths sum to the thread's), every link of the free chain its length (links
+/// hanging from the needle stretch a little under PBD), and the sutures' loops hold what the
+/// geometry says a stitch uses.
+#[test]
+fn the_threads_length_is_conserved_through_a_mission() {
+    let scene = SceneConfig::default();
+    let wound = Wound::linear(&scene.wound).expect("wound");
+    let loader = PlanLoader::new(&wound, ScriptLimits::default());
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scripts/stitch.rhai");
+    let plan = load_plan(&loader, &path).expect("plan").plan;
+    let clock = SimClock::new();
+    let (mut primitives, world) =
+        mock_primitives(&scene, SensingConfig::perfect(), 2, clock.clone()).expect("mock");
+    let mut supervisor = ScriptedSupervisor::default();
+    let report = Runner::new(
+        Arc::new(plan),
+        &mut primitives,
+        &mut supervisor,
+        Arc::new(clock),
+        Some(2),
+    )
+    .run();
+    let done = report.throws.iter().filter(|t| t.completed).count();
+    assert!(done >= 3, "{:?}", report.outcome);
+    let thread = world.thread();
+    assert!(
+        (thread.total_m() - scene.thread.length_m).abs() < 1e-9,
+        "{} m of a {} m thread",
+        thread.total_m(),
+        scene.thread.length_m
+    );
+    for w in thread.free.points.windows(2) {
+        let l = (w[1] - w[0]).norm();
+        assert!(l <= scene.thread.segment_m * 1.1, "a link of {l} m");
+    }
+    // Each finished stitch: the needle's arc through the tissue (about 1 cm) and a loop at
+    // least as long as the straight line from the previous exit to its entry.
+    assert!(thread.stitches.len() >= done.saturating_sub(1));
+    for st in &thread.stitches {
+        assert!((0.009..0.012).contains(&st.tissue_m), "{st:?}");
+        assert!(st.loop_m + 1e-9 >= st.taut_m, "{st:?}");
+    }
 }
 
 mod faults {

@@ -16,7 +16,6 @@ fn scene() -> SceneConfig {
         thread: ThreadConfig {
             catch_radius_m: 0.0,
             occlusion_radius_m: 0.0,
-            p_tangle_per_cinch: 0.0,
             ..ThreadConfig::default()
         },
         ..SceneConfig::default()

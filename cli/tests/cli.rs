@@ -246,10 +246,7 @@ fn the_mock_configuration_documented_in_docs_parses_and_runs() {
 fn a_bad_mock_configuration_says_where() {
     let config = tmp("bad.toml");
     for (toml, says) in [
-        (
-            "[scene.thread]\np_tangle_per_cinch = 1.5\n",
-            "thread.p_tangle_per_cinch",
-        ),
+        ("[scene.thread]\nfriction = -1.5\n", "thread.friction"),
         ("[scene]\nnot_a_key = 1\n", "not_a_key"),
     ] {
         std::fs::write(&config, toml).expect("write");

@@ -82,7 +82,7 @@ pub fn dataset(n: usize, seed: u64, needle: Needle, phantom: &PhantomView) -> Ve
             Sample {
                 scene: SceneView {
                     needle: Some((needle, truth)),
-                    thread: vec![anchor, mid, swage],
+                    thread: vec![vec![anchor, mid, swage]],
                     tools: vec![ToolView {
                         pose: tool,
                         jaw_rad: 0.0,

@@ -158,7 +158,7 @@ fn a_needle_lodged_in_tissue_is_found_through_its_holes() {
     let swage = truth * needle.swage();
     let scene = SceneView {
         needle: Some((needle, truth)),
-        thread: vec![Point::new(-0.02, 0.0, -0.116), swage],
+        thread: vec![vec![Point::new(-0.02, 0.0, -0.116), swage]],
         tools: vec![],
     };
     let pair = r.render(&scene, &Pose::identity(), &mut ChaCha8Rng::seed_from_u64(3));

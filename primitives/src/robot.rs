@@ -37,8 +37,21 @@ pub const ESTIMATE_TRIES: usize = 3;
 pub const MOTION_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(30);
 /// How far a driver backs off after letting go or after a failed grasp (modelling choice), m.
 pub const RETREAT_M: f64 = 0.02;
-/// The longest pull a cinch makes in one motion (modelling choice: the workspace's reach), m.
-pub const CINCH_MAX_PULL_M: f64 = 0.05;
+/// A needle driver's blade length (dVRK large needle driver: about 9 mm), m.
+pub const BLADE_LENGTH_M: f64 = 0.009;
+/// The wound's top above its holes, where a sweep's blades run (modelling choice, the mock's
+/// phantom: 4 mm), m.
+const SWEEP_TOP_ABOVE_HOLE_M: f64 = 0.004;
+/// How far above the wound's top the open blades' tips run in a sweep (modelling choice), m.
+const SWEEP_CLEARANCE_M: f64 = 0.0003;
+/// How far before the stitch, along the sweep, it starts (modelling choice), m.
+const SWEEP_BEHIND_M: f64 = 0.005;
+/// How far a sweep backs off from the thread it pushed before lifting (modelling choice), m.
+const SWEEP_BACK_OFF_M: f64 = 0.005;
+
+/// The longest pull a cinch makes in one motion (modelling choice: a PSM's comfortable reach
+/// above the phantom), m.
+pub const CINCH_MAX_PULL_M: f64 = 0.15;
 
 /// What an observer of the real scene can tell that the robot's sensors cannot: the
 /// Surgical Robotics Challenge-style score of a needle pass, and problems such as a dropped
@@ -130,6 +143,8 @@ pub struct RobotPrimitives {
     corrected_grasp: Option<Pose>,
     /// The wound point the needle last went into (where extraction finds it).
     last_point: Option<WoundPoint>,
+    /// The one before it: the stitch already made, the side a sweep pushes the thread to.
+    previous_point: Option<WoundPoint>,
     /// The latest needle estimate any step or condition obtained (a condition's age reads it).
     last_estimate: Option<NeedleEstimate>,
     /// The end the left jaw grasped at the last extraction.
@@ -309,6 +324,7 @@ impl RobotPrimitives {
             rig,
             corrected_grasp: None,
             last_point: None,
+            previous_point: None,
             last_estimate: None,
             left_end: NeedleEnd::Tip,
             unseen: Vec::new(),
@@ -481,7 +497,9 @@ impl RobotPrimitives {
         point: &WoundPoint,
         p: &InsertParams,
     ) -> Step<Measurements> {
-        self.last_point = Some(point.clone());
+        if self.last_point.as_ref() != Some(point) {
+            self.previous_point = self.last_point.replace(point.clone());
+        }
         let tool = self.rig.right.measured_cp().map_err(fault)?;
         let corrected = self.corrected_grasp.take();
         let grasp = match corrected {
@@ -542,19 +560,36 @@ impl RobotPrimitives {
         p: &SweepParams,
     ) -> Step<Measurements> {
         let mid = Point::from((point.entry.coords + point.exit.coords) / 2.0);
-        let start = pose(
-            mid + Vector::new(0.0, 0.005, 0.004),
-            pointing(&-Vector::z()),
-        );
+        // Wide open across the wound, a broom: the blades spread across it (tool y along the
+        // wound's across direction), their tips just above the wound's top, from a little
+        // behind the stitch so that thread draped over the wound at the stitch goes ahead.
+        let across = horizontal(point.exit - point.entry).unwrap_or_else(Vector::x);
+        let down = -Vector::z();
+        let x = across.cross(&down);
+        let broom = UnitQuaternion::from_rotation_matrix(&Rotation3::from_basis_unchecked(&[
+            x, across, down,
+        ]));
+        let lift = SWEEP_TOP_ABOVE_HOLE_M - BLADE_LENGTH_M * (1.0 - (p.jaw_open_rad / 2.0).cos())
+            + SWEEP_CLEARANCE_M;
+        // Towards the stitch already made (the thread runs back to it), from a little beyond
+        // this one; the first throw, towards the wound's start.
+        let along = self
+            .previous_point
+            .as_ref()
+            .and_then(|prev| horizontal(prev.exit - point.exit))
+            .unwrap_or(-Vector::y());
+        let start = pose(mid + along * -SWEEP_BEHIND_M + Vector::z() * lift, broom);
         self.jaw(c, Hand::Right, p.jaw_open_rad)?;
         self.go(
             c,
             Hand::Right,
-            &[start, shifted(&start, Vector::y() * p.distance_m)],
+            &[start, shifted(&start, along * p.distance_m)],
         )?;
-        // Lift clear of the thread pushed ahead of the jaw before closing it.
-        let end = shifted(&start, Vector::y() * p.distance_m + Vector::z() * RETREAT_M);
-        self.go(c, Hand::Right, &[end])?;
+        // Back off from the thread pushed ahead of the blades, then lift clear of it, before
+        // closing the jaw: lifting straight away would carry thread lying against the blades.
+        let back = shifted(&start, along * (p.distance_m - SWEEP_BACK_OFF_M));
+        let end = shifted(&back, Vector::z() * RETREAT_M);
+        self.go(c, Hand::Right, &[back, end])?;
         self.jaw(c, Hand::Right, JAW_CLOSED_RAD)?;
         match self.problem() {
             Some(kind) => Err(failed(kind)),

@@ -167,8 +167,9 @@ pub struct ToolView {
 pub struct SceneView {
     /// The needle's shape and pose; `None` if it is out of view.
     pub needle: Option<(Needle, Pose)>,
-    /// The free thread, a polyline, m.
-    pub thread: Vec<Point>,
+    /// The thread in view, in pieces (the free thread, the open stitch's loop), each a
+    /// polyline, m.
+    pub thread: Vec<Vec<Point>>,
     /// The tools.
     pub tools: Vec<ToolView>,
 }
@@ -273,7 +274,7 @@ const TOOL: [f32; 3] = [38.0, 38.0, 44.0];
 const PAD_HALF_WIDTH_M: f64 = 0.05;
 const PAD_MARGIN_M: f64 = 0.04;
 /// The raised wound's extent beyond its first and last points, m (modelling choice).
-const WOUND_MARGIN_M: f64 = 0.004;
+pub(crate) const WOUND_MARGIN_M: f64 = 0.004;
 /// Thread radius (a 3-0 suture is about 0.3 mm thick), m.
 const THREAD_RADIUS_M: f64 = 0.00015;
 
@@ -578,7 +579,7 @@ fn tubes(scene: &SceneView, robot_to_camera: &Pose) -> Vec<Tube> {
             );
         }
     }
-    for w in scene.thread.windows(2) {
+    for w in scene.thread.iter().flat_map(|piece| piece.windows(2)) {
         // Subdivide so the depth test follows the thread.
         let n = (((w[1] - w[0]).norm() / 0.002).ceil() as usize).clamp(1, 200);
         for k in 0..n {
@@ -860,7 +861,10 @@ mod tests {
         let r = StereoRenderer::new(CameraConfig::default(), phantom()).expect("renderer");
         let scene = SceneView {
             needle: Some((Needle::default(), needle_pose())),
-            thread: vec![Point::new(0.0, 0.0, -0.116), Point::new(-0.02, 0.02, -0.1)],
+            thread: vec![vec![
+                Point::new(0.0, 0.0, -0.116),
+                Point::new(-0.02, 0.02, -0.1),
+            ]],
             tools: vec![],
         };
         let a = r.render(&scene, &Pose::identity(), &mut ChaCha8Rng::seed_from_u64(3));

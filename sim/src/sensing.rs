@@ -57,8 +57,8 @@ impl Default for SensingConfig {
                 p_dropout: 0.05,
             },
             elsewhere: NoiseSpec {
-                sigma_position_m: 0.0006,
-                sigma_rotation_rad: 2.5f64.to_radians(),
+                sigma_position_m: 0.0009,
+                sigma_rotation_rad: 3.5f64.to_radians(),
                 p_dropout: 0.15,
             },
             p_dropout_thread: 0.3,

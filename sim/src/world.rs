@@ -6,7 +6,7 @@ use crate::SimError;
 use crate::faults::{FaultConfig, FaultKind, Faults};
 use crate::phantom::{Phantom, PhantomGeometry};
 use crate::streams::{Streams, Subsystem};
-use crate::thread::{Thread, ThreadConfig};
+use crate::thread::{Capsule, Ground, Thread, ThreadConfig, tool_capsules};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
@@ -282,17 +282,42 @@ impl State {
         } else {
             ((t * m.steps as f64).floor() as usize).min(m.steps)
         };
-        if let Some(grasp) = m.carried {
-            for k in (m.applied + 1)..=upto {
-                let pose = m.at(k as f64 / m.steps as f64);
-                let actual = self.faults.actual_pose(i, &self.rcm[i], &pose);
+        for k in (m.applied + 1)..=upto {
+            let pose = m.at(k as f64 / m.steps as f64);
+            let actual = self.faults.actual_pose(i, &self.rcm[i], &pose);
+            if let Some(grasp) = m.carried {
                 self.needle.pose = actual * grasp;
                 let tip = self.needle.pose * self.needle_model.tip();
                 self.tip_path.push(tip);
             }
+            // The thread follows every third sample (1.5 mm of tool travel), and every sample
+            // (0.5 mm, half a blade's radius) while a tool that does not carry the needle is
+            // near it, so that a link pushed ahead of a blade stays ahead of it.
+            let tools = self.tool_bodies(Some((i, actual)));
+            let pushing = m.carried.is_none() && self.thread.near(&tools[5 * i..5 * i + 5]);
+            if k % THREAD_EVERY == 0 || k == m.steps || pushing {
+                let swage = self.needle.pose * self.needle_model.swage();
+                self.thread.follow(swage, &tools);
+            }
         }
         m.applied = m.applied.max(upto);
         m
+    }
+
+    /// Both tools' capsules where they are (the actual poses, joint offsets included), arm
+    /// `moving` at the pose given.
+    fn tool_bodies(&self, moving: Option<(usize, Pose)>) -> [Capsule; 10] {
+        let at = |j: usize| match moving {
+            Some((i, pose)) if i == j => pose,
+            _ => self
+                .faults
+                .actual_pose(j, &self.rcm[j], &self.psms[j].setpoint),
+        };
+        let [a, b] = [0, 1].map(|j| tool_capsules(&at(j), self.psms[j].jaw_rad));
+        let mut out = [a[0]; 10];
+        out[..5].copy_from_slice(&a);
+        out[5..].copy_from_slice(&b);
+        out
     }
 
     /// Stop arm `i`'s motion, if one is under way, where it is now; and its jaw's, if `jaw`.
@@ -316,7 +341,6 @@ impl State {
     /// leaves the tissue, the thread follows, a sweep pushes it.
     fn complete(&mut self, i: usize, m: &ArmMotion, at: Pose) {
         let side = if i == 0 { Side::Right } else { Side::Left };
-        let start = m.start;
         if let Some(grasp) = m.carried {
             if self.faults.fires(FaultKind::NeedleSlip) {
                 let slipped = grasp * self.faults.slip();
@@ -330,27 +354,21 @@ impl State {
             let was = self.lodged;
             self.lodged = tissue_holding(self);
             if let (Some(p), None) = (was, self.lodged) {
-                // Out of the tissue: the thread now leaves the suture line at this exit.
-                let exit = self.phantom.wound.points[p].exit;
-                self.thread.on_extraction(exit);
-            }
-            let swage = self.needle.pose * self.needle_model.swage();
-            self.thread.lay(swage);
-        } else if side == Side::Right && self.psms[0].jaw_rad >= SWEEP_MIN_JAW_RAD {
-            let d = at.translation.vector - start.translation.vector;
-            let near = self.last_point.is_some_and(|p| {
-                let p = &self.phantom.wound.points[p];
-                let mid = (p.entry.coords + p.exit.coords) / 2.0;
-                (start.translation.vector - mid).xz().norm() < 0.015
-            });
-            if near && d.y > 0.01 && d.x.abs() < 0.005 && d.z.abs() < 0.005 {
-                let from = Point::from(start.translation.vector);
-                self.thread.on_sweep(&from, at.translation.vector.y);
+                // Out of the tissue: the thread followed the swage through this stitch.
+                let wp = &self.phantom.wound.points[p];
+                let (entry, exit) = (wp.entry, wp.exit);
+                let r = self.needle_model.radius_m;
+                let chord = (exit - entry).norm();
+                let in_tissue = 2.0 * r * (chord / (2.0 * r)).clamp(0.0, 1.0).asin();
                 let swage = self.needle.pose * self.needle_model.swage();
-                self.thread.lay(swage);
+                self.thread.on_extraction(entry, exit, in_tissue, swage);
             }
         }
         self.psms[i].setpoint = at;
+        let tools = self.tool_bodies(None);
+        let swage = self.needle.pose * self.needle_model.swage();
+        self.thread.settle(swage, &tools);
+        self.thread.check_tangle(&tools);
     }
 }
 
@@ -405,9 +423,6 @@ pub const JAW_LENGTH_M: f64 = 0.009;
 /// A closing jaw grasps the wire only across it: not if the jaw lies within this angle of the
 /// wire's direction (modelling choice), rad.
 pub const GRASP_MIN_CROSSING_RAD: f64 = 20.0 * std::f64::consts::PI / 180.0;
-/// A right-arm move with the jaw opened at least this wide, mostly along +y near the wound,
-/// is a thread sweep (modelling choice), rad.
-const SWEEP_MIN_JAW_RAD: f64 = 40.0 * std::f64::consts::PI / 180.0;
 
 /// The tool pose, in the needle frame, of a jaw holding the needle at `angle` along the arc
 /// with the jaw across the needle's plane (tool z = −needle normal, tool x = the wire's
@@ -435,6 +450,8 @@ pub struct MockDvrk {
 /// least every 0.5 mm of tool travel) so that hole crossings are scored accurately.
 const MIN_SAMPLES: usize = 8;
 const SAMPLE_SPACING_M: f64 = 0.0005;
+/// The thread follows a motion every this many samples.
+const THREAD_EVERY: usize = 3;
 
 impl MockDvrk {
     /// A world laid out by `scene`: both arms at their homes (tool frames aligned with the
@@ -447,19 +464,7 @@ impl MockDvrk {
             why: e.to_string(),
         })?;
         let phantom = Phantom::new(wound, scene.phantom)?;
-        // The thread's tail: a knot 1 cm out from the first entry on its own side, on the
-        // tissue's top (modelling choice).
-        let first = &phantom.wound.points[0];
-        let surface_z = first.entry.z + scene.phantom.top_above_hole_m;
-        let out = (first.entry - first.exit)
-            .try_normalize(1e-12)
-            .unwrap_or_else(|| -Vector::x());
-        let tail = first.entry + out * 0.01;
-        let mut thread = Thread::new(
-            scene.thread,
-            Point::new(tail.x, tail.y, surface_z),
-            surface_z,
-        )?;
+        let mut thread_rng = streams.rng(Subsystem::Thread);
         let at = |p: [f64; 3]| {
             Pose::from_parts(
                 Translation3::new(p[0], p[1], p[2]),
@@ -488,7 +493,22 @@ impl MockDvrk {
             commands: 0,
         };
         let pose = home[0] * grasp;
-        thread.lay(pose * scene.needle.swage());
+        // The thread's tail: a stopper knot 1 cm out from the first entry on its own side, on
+        // the pad, the slack laid to a side drawn from the seed (modelling choice).
+        let ground = ground_of(&phantom);
+        let first = &phantom.wound.points[0];
+        let out = (first.entry - first.exit)
+            .try_normalize(1e-12)
+            .unwrap_or_else(|| -Vector::x());
+        let tail = first.entry + out * 0.01;
+        let angle = thread_rng.random_range(0.0..std::f64::consts::TAU);
+        let thread = Thread::new(
+            scene.thread,
+            ground,
+            Point::new(tail.x, tail.y, ground.floor_z),
+            pose * scene.needle.swage(),
+            Vector::new(angle.cos(), angle.sin(), 0.0),
+        )?;
         let state = State {
             config: scene.psm,
             psms: [psm(home[0]), psm(home[1])],
@@ -502,7 +522,7 @@ impl MockDvrk {
             grasp_rng: streams.rng(Subsystem::Grasp),
             phantom,
             thread,
-            thread_rng: streams.rng(Subsystem::Thread),
+            thread_rng,
             lodged: None,
             last_point: None,
             last_lodged_pose: None,
@@ -549,15 +569,6 @@ impl MockDvrk {
     /// The wound point whose tissue holds the needle, if any.
     pub fn lodged(&self) -> Option<usize> {
         self.lock().lodged
-    }
-
-    /// Record a cinch leaving `beta_m` of free thread.
-    pub fn cinched(&self, beta_m: f64) {
-        let mut s = self.lock();
-        let State {
-            thread, thread_rng, ..
-        } = &mut *s;
-        thread.on_cinch(beta_m, thread_rng);
     }
 
     /// The world's state, every motion under way brought up to the clock's time.
@@ -675,11 +686,6 @@ impl MockDvrk {
         // The surgeon's hands replace whatever the robot was doing.
         s.motions = [None, None];
         s.jaw_motions = [None, None];
-        s.thread.caught = false;
-        s.thread.tangled = false;
-        // The surgeon lays the slack back, away from the camera.
-        s.thread.sag_dir = -Vector::y();
-        s.thread.pushed_to_y = None;
         for i in 0..2 {
             s.psms[i].setpoint = s.home[i];
             s.psms[i].jaw_rad = 0.0;
@@ -716,8 +722,9 @@ impl MockDvrk {
         }
         let tip = s.needle.pose * s.needle_model.tip();
         s.tip_path = vec![tip];
+        // The surgeon frees the thread and lays the slack back, away from the camera.
         let swage = s.needle.pose * s.needle_model.swage();
-        s.thread.lay(swage);
+        s.thread.lay_aside(swage, -Vector::y());
     }
 
     /// Let go of the needle wherever it is (a slip, a fault): no jaw holds it.
@@ -744,6 +751,14 @@ impl MockDvrk {
             return Err(RobotError::NonFinite {
                 arm: name.into(),
                 what: "goal pose".into(),
+            });
+        }
+        let norm = goal.rotation.quaternion().norm();
+        if (norm - 1.0).abs() > 1e-6 {
+            // As the dVRK (and the sim-node) refuse it: not a rotation.
+            return Err(RobotError::Fault {
+                arm: name.into(),
+                message: format!("move_cp refused: quaternion of norm {norm:.4}, not a rotation"),
             });
         }
         if s.faults.fires(FaultKind::ArmFault) {
@@ -818,12 +833,11 @@ impl MockDvrk {
                 match tissue_holding(&s) {
                     Some(point) => {
                         if s.lodged.is_none() || s.last_point != Some(point) {
+                            let swage = s.needle.pose * s.needle_model.swage();
                             let State {
                                 thread, thread_rng, ..
                             } = &mut *s;
-                            thread.on_insertion(thread_rng);
-                            let swage = s.needle.pose * s.needle_model.swage();
-                            s.thread.lay(swage);
+                            thread.on_insertion(swage, thread_rng);
                         }
                         s.lodged = Some(point);
                         s.last_point = Some(point);
@@ -853,11 +867,10 @@ impl MockDvrk {
                 s.needle.grips[i] = Some(grasp);
                 s.needle.pose = tool * grasp;
             }
-            if s.lodged.is_some() {
-                // Closing on thread lying at the jaw catches it.
-                let jaw_tip = tool * Point::origin();
-                s.thread.on_grasp(&jaw_tip);
-            }
+            // Closing on thread lying between the blades catches it.
+            let blades = tool_capsules(&tool, 0.0)[0];
+            let holds = s.needle.grips[i].is_some();
+            s.thread.on_grasp(&blades, holds);
         }
         let id = s.next_motion;
         s.next_motion += 1;
@@ -1110,12 +1123,38 @@ impl Jaw for MockJaw {
     }
 }
 
+/// What the thread rests on: the pad and the raised wound, as the renderer draws them.
+fn ground_of(phantom: &Phantom) -> Ground {
+    let points = &phantom.wound.points;
+    let (first, last) = (&points[0], &points[points.len() - 1]);
+    let mid = |wp: &stitch_robot::WoundPoint| Point::from((wp.entry.coords + wp.exit.coords) / 2.0);
+    let along = mid(last) - mid(first);
+    let length = along.xy().norm();
+    let dir = if length > 1e-9 {
+        Vector::new(along.x, along.y, 0.0) / length
+    } else {
+        Vector::y()
+    };
+    let top_z = first.entry.z + phantom.geometry.top_above_hole_m;
+    let mut start = mid(first);
+    start.z = top_z;
+    Ground {
+        floor_z: first.entry.z - phantom.geometry.bottom_below_hole_m,
+        top_z,
+        start,
+        along: dir,
+        half_width_m: (first.exit - first.entry).norm() / 2.0,
+        length_m: length,
+        margin_m: crate::render::WOUND_MARGIN_M,
+    }
+}
+
 /// What the camera sees in `s`: the needle (unless it fell out of view), the free thread and
 /// both tools, from the truth.
 fn scene_of(s: &State) -> crate::SceneView {
     crate::SceneView {
         needle: (!s.needle.dropped).then_some((s.needle_model, s.needle.pose)),
-        thread: s.thread.polyline.clone(),
+        thread: s.thread.pieces(),
         tools: (0..2)
             .map(|i| crate::ToolView {
                 pose: s.psms[i].setpoint,
@@ -1129,6 +1168,7 @@ fn scene_of(s: &State) -> crate::SceneView {
 mod tests {
     use super::*;
     use stitch_robot::JAW_OPEN_RAD;
+    use stitch_robot::nalgebra::Quaternion;
 
     fn world(seed: u64, sigma: f64) -> MockDvrk {
         let scene = SceneConfig {
@@ -1313,9 +1353,10 @@ mod tests {
         let t = w.needle_truth();
         assert!(!t.dropped);
         assert_eq!(w.lodged(), Some(0));
+        let thread = w.thread();
         assert!(
-            (w.thread().used_m - 0.02).abs() < 1e-12,
-            "one suture's thread"
+            thread.open_loop.is_none() && (thread.remaining_m() - 0.30).abs() < 1e-9,
+            "the thread follows through only when the needle comes out"
         );
     }
 
@@ -1327,6 +1368,18 @@ mod tests {
             UnitQuaternion::identity(),
         );
         assert!(w.arm(Side::Right).move_cp(&bad).is_err());
+        // A reflection is no rotation: its quaternion is not a unit one.
+        let reflected = Pose::from_parts(
+            Translation3::new(0.0, 0.0, -0.1),
+            UnitQuaternion::new_unchecked(Quaternion::new(0.7, 0.0, 0.0, 0.0)),
+        );
+        let refused = w.arm(Side::Right).move_cp(&reflected).err();
+        assert!(
+            refused
+                .as_ref()
+                .is_some_and(|e| e.to_string().contains("not a rotation")),
+            "{refused:?}"
+        );
         assert!(w.jaw(Side::Right).move_jp(3.0).is_err());
         assert_eq!(w.clock().now(), Duration::ZERO);
         assert!(
