@@ -224,11 +224,11 @@ mod tests {
                 errors.iter().sum::<f64>() / errors.len() as f64,
             )
         };
-        // The needle at home is outside the corner: 0.6 mm σ per axis, mean 3D error
-        // 1.6 × 0.6 ≈ 0.96 mm; 15 % dropouts.
+        // The needle at home is outside the corner: 0.9 mm σ per axis, mean 3D error
+        // 1.6 × 0.9 ≈ 1.44 mm; 15 % dropouts.
         let (seen, far) = mean_error(&SensingConfig::default());
         assert!((310..=370).contains(&seen), "{seen}");
-        assert!((0.0008..0.0012).contains(&far), "{far}");
+        assert!((0.0012..0.0017).contains(&far), "{far}");
         // The same needle with the corner moved onto it: 0.2 mm σ, 5 % dropouts.
         let c = truth;
         let at_corner = SensingConfig {
