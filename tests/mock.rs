@@ -6,9 +6,19 @@ use stitch_engine::{
 };
 use stitch_primitives::mock_primitives;
 use stitch_robot::{SimClock, Wound};
-use stitch_sim::{SceneConfig, SensingConfig, ThreadConfig};
+use stitch_sim::{MockDvrk, SceneConfig, SensingConfig, ThreadConfig};
 
 fn run(script: &str, scene: &SceneConfig, sensing: SensingConfig, seed: u64) -> Report {
+    run_in(script, scene, sensing, seed).0
+}
+
+/// The mission's report, and the world it ran in.
+fn run_in(
+    script: &str,
+    scene: &SceneConfig,
+    sensing: SensingConfig,
+    seed: u64,
+) -> (Report, MockDvrk) {
     let wound = Wound::linear(&scene.wound).expect("wound");
     let loader = PlanLoader::new(&wound, ScriptLimits::default());
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -18,17 +28,18 @@ fn run(script: &str, scene: &SceneConfig, sensing: SensingConfig, seed: u64) -> 
         .unwrap_or_else(|e| panic!("{e}"))
         .plan;
     let clock = SimClock::new();
-    let (mut primitives, _world) =
+    let (mut primitives, world) =
         mock_primitives(scene, sensing, seed, clock.clone()).expect("mock");
     let mut supervisor = ScriptedSupervisor::default();
-    Runner::new(
+    let report = Runner::new(
         Arc::new(plan),
         &mut primitives,
         &mut supervisor,
         Arc::new(clock),
         Some(seed),
     )
-    .run()
+    .run();
+    (report, world)
 }
 
 /// A thread that never gets in the way: it neither hides the needle nor gets caught.
@@ -71,22 +82,7 @@ fn perfect_perception_and_no_faults_sutures_all_six_throws() {
 #[test]
 fn the_threads_length_is_conserved_through_a_mission() {
     let scene = SceneConfig::default();
-    let wound = Wound::linear(&scene.wound).expect("wound");
-    let loader = PlanLoader::new(&wound, ScriptLimits::default());
-    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scripts/stitch.rhai");
-    let plan = load_plan(&loader, &path).expect("plan").plan;
-    let clock = SimClock::new();
-    let (mut primitives, world) =
-        mock_primitives(&scene, SensingConfig::perfect(), 2, clock.clone()).expect("mock");
-    let mut supervisor = ScriptedSupervisor::default();
-    let report = Runner::new(
-        Arc::new(plan),
-        &mut primitives,
-        &mut supervisor,
-        Arc::new(clock),
-        Some(2),
-    )
-    .run();
+    let (report, world) = run_in("stitch.rhai", &scene, SensingConfig::perfect(), 2);
     let done = report.throws.iter().filter(|t| t.completed).count();
     assert!(done >= 3, "{:?}", report.outcome);
     let thread = world.thread();
