@@ -879,6 +879,13 @@ impl stitch_perception::NeedleEstimator for Watched {
         self.note(&r);
         r
     }
+
+    fn trace_thread(
+        &mut self,
+        hint: &stitch_perception::ThreadHint,
+    ) -> Result<stitch_perception::ThreadTrace, stitch_perception::PerceptionError> {
+        self.inner.trace_thread(hint)
+    }
 }
 
 impl Watched {

@@ -89,6 +89,9 @@ pub fn failure_kind(e: &PerceptionError) -> &'static str {
         PerceptionError::Config { .. } => "config",
         PerceptionError::Camera { .. } => "camera",
         PerceptionError::Model { .. } => "model",
+        PerceptionError::NoThread { .. } => "no_thread",
+        PerceptionError::ThreadHidden { .. } => "thread_hidden",
+        PerceptionError::ThreadUntraced { .. } => "thread_untraced",
         _ => "other",
     }
 }

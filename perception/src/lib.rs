@@ -7,6 +7,7 @@ pub mod onnx;
 pub mod pipeline;
 pub mod refine;
 pub mod segment;
+pub mod thread;
 
 pub use disparity::{
     DisparityMap, LeftRight, MaskRowMatcher, SemiGlobalMatcher, SgmPaths, StereoMatcher,
@@ -16,6 +17,7 @@ pub use pipeline::{
     PipelineParams, PoseError, TissueHint,
 };
 pub use segment::{ColorSegmenter, Masks, Rect, Segmenter, SharedSegmenter};
+pub use thread::{ThreadHint, ThreadParams, ThreadTrace};
 
 use serde::{Deserialize, Serialize};
 use std::time::Duration;
@@ -99,6 +101,25 @@ pub enum PerceptionError {
         /// What it said.
         message: String,
     },
+    /// No thread in a view near where it should be (the needle's swage, the last exit).
+    #[error("no thread in the {view} image near the swage and the suture line")]
+    NoThread {
+        /// Which view.
+        view: String,
+    },
+    /// Too much of the thread is hidden (behind a jaw, the needle, out of the image) to
+    /// trace it.
+    #[error("thread hidden: only {:.0} % of it seen", seen_share * 100.0)]
+    ThreadHidden {
+        /// The share of the traced path the left view showed as thread.
+        seen_share: f64,
+    },
+    /// The thread was seen but could not be traced in 3D.
+    #[error("thread not traced: {why}")]
+    ThreadUntraced {
+        /// Why.
+        why: String,
+    },
     /// A learned model (the segmenter's) failed to run: a fault of the perception system,
     /// like a camera's, not a needle out of sight.
     #[error("model: {message}")]
@@ -123,5 +144,14 @@ pub trait NeedleEstimator: Send {
     ) -> Result<NeedleEstimate, PerceptionError> {
         let _ = hint;
         self.estimate_needle()
+    }
+
+    /// Trace the free thread from where it leaves the suture line to the swage
+    /// ([`thread`]), knowing its ends. Estimators without a thread tracer say so, typed.
+    fn trace_thread(&mut self, hint: &ThreadHint) -> Result<ThreadTrace, PerceptionError> {
+        let _ = hint;
+        Err(PerceptionError::Config {
+            message: "this perception has no thread tracer".into(),
+        })
     }
 }

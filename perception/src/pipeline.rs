@@ -1472,6 +1472,24 @@ impl<C: StereoCamera + std::fmt::Debug> NeedleEstimator for PipelineEstimator<C>
             stamp,
         })
     }
+
+    fn trace_thread(
+        &mut self,
+        hint: &crate::ThreadHint,
+    ) -> Result<crate::ThreadTrace, PerceptionError> {
+        let StereoFrame { left, right, .. } =
+            self.camera.capture().map_err(|e| PerceptionError::Camera {
+                message: e.to_string(),
+            })?;
+        crate::thread::trace(
+            &crate::ThreadParams::default(),
+            &*self.pipeline.segmenter,
+            &self.pipeline.calibration,
+            &left,
+            &right,
+            hint,
+        )
+    }
 }
 
 /// Helper for tests and benches: the error between an estimate and the truth.

@@ -120,6 +120,11 @@ pub trait Segmenter: Send + Sync + std::fmt::Debug {
     /// How needle-like a pixel is: positive inside the needle mask, negative outside, with
     /// a zero crossing at its edge (for sub-pixel edges). Needs no neighbours.
     fn needleness(&self, rgb: [u8; 3]) -> f32;
+    /// The thread mask alone over `roi` (1 where the thread is, row-major): what the thread
+    /// tracer asks for; a segmenter with a cheaper way than `segment` overrides it.
+    fn thread_mask(&self, image: &RgbImage, roi: Rect) -> Result<Vec<u8>, PerceptionError> {
+        self.segment(image, roi).map(|m| m.thread)
+    }
 }
 
 /// A segmenter several pipelines share (a model loaded once), equal only to itself.
@@ -144,6 +149,9 @@ impl Segmenter for SharedSegmenter {
     }
     fn needleness(&self, rgb: [u8; 3]) -> f32 {
         self.0.needleness(rgb)
+    }
+    fn thread_mask(&self, image: &RgbImage, roi: Rect) -> Result<Vec<u8>, PerceptionError> {
+        self.0.thread_mask(image, roi)
     }
 }
 
@@ -381,6 +389,21 @@ impl Segmenter for ColorSegmenter {
             needle,
             thread,
         })
+    }
+
+    fn thread_mask(&self, image: &RgbImage, roi: Rect) -> Result<Vec<u8>, PerceptionError> {
+        let roi = roi.clipped(image.width, image.height);
+        let w = image.width as usize;
+        let rw = roi.width() as usize;
+        let mut thread = vec![0u8; rw * roi.height() as usize];
+        for (y, out) in thread.chunks_exact_mut(rw.max(1)).enumerate() {
+            let iy = roi.y0 as usize + y;
+            let row = &image.data[(iy * w + roi.x0 as usize) * 3..(iy * w + roi.x1 as usize) * 3];
+            for (o, p) in out.iter_mut().zip(row.chunks_exact(3)) {
+                *o = u8::from(self.is_thread(p));
+            }
+        }
+        Ok(thread)
     }
 
     fn needleness(&self, p: [u8; 3]) -> f32 {

@@ -730,4 +730,10 @@ impl NeedleEstimator for TappedEstimator {
         self.tap.estimate(hint, &r, truth, self.needle.as_ref());
         r
     }
+    fn trace_thread(
+        &mut self,
+        hint: &stitch_perception::ThreadHint,
+    ) -> Result<stitch_perception::ThreadTrace, PerceptionError> {
+        self.estimator.trace_thread(hint)
+    }
 }

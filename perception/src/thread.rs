@@ -1,0 +1,1027 @@
+//! The thread tracer: where the free thread runs, from where it leaves the suture line to the
+//! needle's swage, from one rectified stereo pair.
+//!
+//! The stages:
+//! 1. **Masks**: the segmenter's thread mask in both views, over a region around the two ends
+//!    (the last exit point, known to the plan, and the swage, pinned by the needle estimate)
+//!    grown by `margin_m`; grown again while the thread runs off its edge.
+//! 2. **Centreline** in the left view: the cheapest path from the exit point's pixel to the
+//!    swage's through the mask, where a step on thread costs 1 and a step off it `gap_cost`
+//!    (A* over the pixels): it follows the thread and bridges what a jaw or the needle hides
+//!    with a straight line; those steps are the hidden spans. Without an exit point (before
+//!    the first stitch) the path runs from the swage to the farthest thread it reaches.
+//! 3. **Correspondence**: along the path from its first end, each row the thread crosses
+//!    steeply enough (more than `min_crossing_rad` from the epipolar lines) is looked up on
+//!    the same row of the right view near the disparity the last match had; the two rows'
+//!    sub-pixel centres (weighted by how violet each pixel is) give the disparity. Where the
+//!    thread runs along the rows there is no disparity to measure: the fit bridges it.
+//! 4. **Fit**: three penalised cubic B-splines (P-splines) over the path's length in pixels,
+//!    for column, row and disparity, with the two ends as observations of their own
+//!    uncertainty, outliers dropped once; their posterior variance gives each sample's
+//!    uncertainty, back-projected into metres. A length prior, when the plan knows how much
+//!    thread is free, picks the smoothing that brings the length nearest it.
+//!
+//! Hand-written (no crate traces thin curves in stereo): the path search is A* on a pixel
+//! grid, the splines a small dense least-squares solve with nalgebra.
+
+use crate::PerceptionError;
+use crate::segment::{Rect, Segmenter};
+use nalgebra::{DMatrix, DVector};
+use serde::{Deserialize, Serialize};
+use std::cmp::Reverse;
+use std::collections::BinaryHeap;
+use stitch_robot::{Point, RgbImage, StereoCalibration};
+
+/// What the tracer knows before it looks.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ThreadHint {
+    /// Where the thread leaves the suture line (the last stitch's exit point), robot frame,
+    /// m; `None` before the first stitch (the tail's end is then found, not given).
+    pub start: Option<Point>,
+    /// The needle's swage, robot frame, m (from the needle estimate).
+    pub swage: Point,
+    /// How much thread runs between them, m, if the plan knows (a length prior).
+    pub length_m: Option<f64>,
+}
+
+/// The traced thread.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ThreadTrace {
+    /// Points along it from its first end (the exit point, or the tail) to the swage, robot
+    /// frame, m: the fitted curve sampled about every millimetre.
+    pub points: Vec<Point>,
+    /// Each point's uncertainty: the root of its covariance's trace (its expected distance
+    /// from the truth), m.
+    pub sigma_m: Vec<f64>,
+    /// The curve's length, m.
+    pub length_m: f64,
+    /// Stretches of it the left view does not show (behind a jaw, the needle, out of the
+    /// image): `[from, to]` along the curve from its first end, m.
+    pub hidden: Vec<[f64; 2]>,
+    /// The share of the path's pixels that were thread in the left view.
+    pub seen_share: f64,
+    /// Points matched between the two views.
+    pub matched: usize,
+    /// The left-image path it followed, pixels `[column, row]` (for overlays).
+    pub left_path_px: Vec<[f64; 2]>,
+}
+
+impl ThreadTrace {
+    /// The trace's point nearest `p`, its distance from `p` and its uncertainty, m.
+    pub fn nearest(&self, p: &Point) -> Option<(Point, f64, f64)> {
+        let mut best: Option<(Point, f64, f64)> = None;
+        for (w, s) in self.points.windows(2).zip(self.sigma_m.windows(2)) {
+            let (a, b) = (w[0], w[1]);
+            let ab = b - a;
+            let t = if ab.norm_squared() > 0.0 {
+                ((p - a).dot(&ab) / ab.norm_squared()).clamp(0.0, 1.0)
+            } else {
+                0.0
+            };
+            let q = a + ab * t;
+            let d = (p - q).norm();
+            if best.is_none_or(|(_, bd, _)| d < bd) {
+                best = Some((q, d, s[0] + (s[1] - s[0]) * t));
+            }
+        }
+        if self.points.len() == 1 {
+            best = Some((self.points[0], (p - self.points[0]).norm(), self.sigma_m[0]));
+        }
+        best
+    }
+
+    /// Whether the thread stays at least `radius_m` from `p`, with `sigmas` of its
+    /// uncertainty as margin (2: about 95 % sure).
+    pub fn clear_of(&self, p: &Point, radius_m: f64, sigmas: f64) -> bool {
+        self.nearest(p)
+            .is_none_or(|(_, d, s)| d - sigmas * s >= radius_m)
+    }
+}
+
+/// The tracer's settings.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ThreadParams {
+    /// How far past the two ends the thread is looked for at first, m (the region grows
+    /// while the thread runs off its edge).
+    pub margin_m: f64,
+    /// How much more a path step off the thread costs than one on it (bridging hidden
+    /// stretches in straight lines).
+    pub gap_cost: u32,
+    /// The least share of the path the left view must show as thread.
+    pub min_seen_share: f64,
+    /// The least points matched between the views.
+    pub min_matched: usize,
+    /// The thread must cross the rows at least this steeply to be matched there, rad.
+    pub min_crossing_rad: f64,
+    /// How far from the predicted disparity a match may be, pixels.
+    pub search_px: f64,
+    /// Uncertainty of a centre in a view (column, row), pixels.
+    pub centre_sigma_px: f64,
+    /// Uncertainty of a measured disparity, pixels.
+    pub disparity_sigma_px: f64,
+    /// Uncertainty of the ends the hint gives, m.
+    pub end_sigma_m: f64,
+    /// Spacing of the splines' knots along the path, pixels.
+    pub knot_px: f64,
+    /// The splines' smoothing (weight of their coefficients' second differences).
+    pub smoothing: f64,
+    /// Uncertainty of the length prior, as a share of it.
+    pub length_prior_share: f64,
+}
+
+impl Default for ThreadParams {
+    fn default() -> Self {
+        Self {
+            margin_m: 0.025,
+            gap_cost: 8,
+            min_seen_share: 0.6,
+            min_matched: 6,
+            min_crossing_rad: 25f64.to_radians(),
+            search_px: 6.0,
+            centre_sigma_px: 0.35,
+            disparity_sigma_px: 0.45,
+            end_sigma_m: 0.001,
+            knot_px: 14.0,
+            smoothing: 2.0,
+            length_prior_share: 0.1,
+        }
+    }
+}
+
+/// Most times the region grows before the tracer gives up on containing the thread.
+const MAX_GROWTH: usize = 3;
+
+/// Trace the thread in a rectified pair.
+pub fn trace(
+    params: &ThreadParams,
+    segmenter: &dyn Segmenter,
+    calib: &StereoCalibration,
+    left: &RgbImage,
+    right: &RgbImage,
+    hint: &ThreadHint,
+) -> Result<ThreadTrace, PerceptionError> {
+    for (name, im) in [("left", left), ("right", right)] {
+        if (im.width, im.height) != (calib.width, calib.height) {
+            return Err(PerceptionError::Config {
+                message: format!(
+                    "the {name} image is {}×{}, the calibration's {}×{}",
+                    im.width, im.height, calib.width, calib.height
+                ),
+            });
+        }
+    }
+    let to_uvd = |p: &Point| -> Option<[f64; 3]> {
+        let q = calib.camera_to_robot.inverse() * p;
+        (q.z > 1e-4).then(|| {
+            [
+                calib.fx * q.x / q.z + calib.cx,
+                calib.fy * q.y / q.z + calib.cy,
+                calib.fx * calib.baseline_m / q.z,
+            ]
+        })
+    };
+    let swage = to_uvd(&hint.swage).ok_or_else(|| PerceptionError::Config {
+        message: "the swage is behind the camera".into(),
+    })?;
+    let start = match &hint.start {
+        Some(p) => Some(to_uvd(p).ok_or_else(|| PerceptionError::Config {
+            message: "the exit point is behind the camera".into(),
+        })?),
+        None => None,
+    };
+    let fb = calib.fx * calib.baseline_m;
+    let mut margin = params.margin_m;
+    let mut last = None;
+    for _ in 0..=MAX_GROWTH {
+        let ends: Vec<[f64; 3]> = std::iter::once(swage).chain(start).collect();
+        let z_near = ends.iter().map(|e| fb / e[2]).fold(f64::INFINITY, f64::min);
+        let m_px = calib.fx * margin / z_near.max(0.01);
+        let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+        for e in &ends {
+            for i in 0..2 {
+                lo[i] = lo[i].min(e[i]);
+                hi[i] = hi[i].max(e[i]);
+            }
+        }
+        let clip = |v: f64, max: u32| v.clamp(0.0, f64::from(max)) as u32;
+        let roi = Rect {
+            x0: clip(lo[0] - m_px, calib.width),
+            y0: clip(lo[1] - m_px, calib.height),
+            x1: clip(hi[0] + m_px, calib.width),
+            y1: clip(hi[1] + m_px, calib.height),
+        };
+        if roi.is_empty() {
+            return Err(PerceptionError::NoThread {
+                view: "left".into(),
+            });
+        }
+        // Depths within the margin of the ends' (and the pad below them): the disparities
+        // the right view's band must cover.
+        let d_hi = ends.iter().map(|e| e[2]).fold(0.0, f64::max);
+        let z_far = ends.iter().map(|e| fb / e[2]).fold(0.0, f64::max) + margin;
+        let d_lo = fb / z_far;
+        let d_hi = fb / (fb / d_hi - margin).max(0.01);
+        let full = roi == Rect::full(calib.width, calib.height);
+        match trace_in(
+            params,
+            segmenter,
+            calib,
+            left,
+            right,
+            roi,
+            [d_lo, d_hi],
+            swage,
+            start,
+            hint,
+        ) {
+            Ok((t, touches)) if !touches || full => return Ok(t),
+            Ok((t, _)) => last = Some(Ok(t)),
+            // A thread that leaves the region may be found in a larger one.
+            Err(
+                e @ (PerceptionError::NoThread { .. }
+                | PerceptionError::ThreadHidden { .. }
+                | PerceptionError::ThreadUntraced { .. }),
+            ) if !full => {
+                last = Some(Err(e));
+            }
+            Err(e) => return Err(e),
+        }
+        margin *= 2.0;
+    }
+    last.unwrap_or(Err(PerceptionError::NoThread {
+        view: "left".into(),
+    }))
+}
+
+/// One try over the left region `roi`: the trace and whether the thread ran off the region.
+#[allow(clippy::too_many_arguments)]
+fn trace_in(
+    params: &ThreadParams,
+    segmenter: &dyn Segmenter,
+    calib: &StereoCalibration,
+    left: &RgbImage,
+    right: &RgbImage,
+    roi: Rect,
+    disparity: [f64; 2],
+    swage: [f64; 3],
+    start: Option<[f64; 3]>,
+    hint: &ThreadHint,
+) -> Result<(ThreadTrace, bool), PerceptionError> {
+    let mask = segmenter.thread_mask(left, roi)?;
+    let (w, h) = (roi.width() as usize, roi.height() as usize);
+    if mask.iter().filter(|&&v| v != 0).count() < 20 {
+        return Err(PerceptionError::NoThread {
+            view: "left".into(),
+        });
+    }
+    let right_roi = Rect {
+        x0: roi.x0.saturating_sub(disparity[1].ceil() as u32 + 2),
+        y0: roi.y0,
+        x1: (roi.x1 as f64 - disparity[0].floor() + 2.0).clamp(0.0, f64::from(calib.width)) as u32,
+        y1: roi.y1,
+    };
+    let rmask = segmenter.thread_mask(right, right_roi)?;
+    if rmask.iter().filter(|&&v| v != 0).count() < 20 {
+        return Err(PerceptionError::NoThread {
+            view: "right".into(),
+        });
+    }
+    // The path is searched on 2×2 blocks (a block is thread if any of its pixels is): a
+    // thread two or three pixels wide stays connected, and the search is four times smaller.
+    let (cw, ch) = (w.div_ceil(2), h.div_ceil(2));
+    let mut coarse = vec![0u8; cw * ch];
+    for (i, _) in mask.iter().enumerate().filter(|(_, v)| **v != 0) {
+        coarse[(i / w / 2) * cw + (i % w) / 2] = 1;
+    }
+    let cell = |u: f64, v: f64| -> usize {
+        let x = ((u - f64::from(roi.x0)) / 2.0).clamp(0.0, cw as f64 - 1.0) as usize;
+        let y = ((v - f64::from(roi.y0)) / 2.0).clamp(0.0, ch as f64 - 1.0) as usize;
+        y * cw + x
+    };
+    let grid = Grid {
+        w: cw,
+        h: ch,
+        mask: &coarse,
+        gap: params.gap_cost.max(1),
+    };
+    let from = cell(swage[0], swage[1]);
+    let cells = match start {
+        Some(s) => grid.path(from, Some(cell(s[0], s[1]))),
+        None => grid.path(from, None),
+    };
+    // From the first end to the swage: each block's first thread pixel (or its centre), and
+    // whether it is thread.
+    let path: Vec<(f64, f64, bool)> = cells
+        .iter()
+        .rev()
+        .map(|&i| {
+            let (bx, by) = (2 * (i % cw), 2 * (i / cw));
+            let on = (0..4)
+                .map(|k| (bx + k % 2, by + k / 2))
+                .find(|&(x, y)| x < w && y < h && mask[y * w + x] != 0);
+            let (x, y) = on.map_or((bx as f64 + 1.0, by as f64 + 1.0), |(x, y)| {
+                (x as f64 + 0.5, y as f64 + 0.5)
+            });
+            (x + f64::from(roi.x0), y + f64::from(roi.y0), on.is_some())
+        })
+        .collect();
+    if path.len() < 3 {
+        return Err(PerceptionError::ThreadUntraced {
+            why: "the ends are too close together in the image to trace between".into(),
+        });
+    }
+    let touches = path.iter().any(|&(x, y, on)| {
+        on && (x < f64::from(roi.x0) + 2.0
+            || y < f64::from(roi.y0) + 2.0
+            || x > f64::from(roi.x1) - 2.0
+            || y > f64::from(roi.y1) - 2.0)
+    }) || {
+        // Thread connected to the path that leaves the region is as telling.
+        let border = |i: usize| {
+            let (x, y) = (i % cw, i / cw);
+            x == 0 || y == 0 || x + 1 == cw || y + 1 == ch
+        };
+        grid.reaches_border(&cells, border)
+    };
+    // Arc length along the path (smoothed), pixels.
+    let smooth: Vec<[f64; 2]> = (0..path.len())
+        .map(|k| {
+            let (a, b) = (k.saturating_sub(3), (k + 3).min(path.len() - 1));
+            let n = (b - a + 1) as f64;
+            let s = path[a..=b]
+                .iter()
+                .fold([0.0, 0.0], |s, p| [s[0] + p.0, s[1] + p.1]);
+            [s[0] / n, s[1] / n]
+        })
+        .collect();
+    let mut t = vec![0.0; path.len()];
+    for k in 1..path.len() {
+        t[k] = t[k - 1] + (smooth[k][0] - smooth[k - 1][0]).hypot(smooth[k][1] - smooth[k - 1][1]);
+    }
+    let total = t[path.len() - 1].max(1.0);
+    let on_len: f64 = (1..path.len())
+        .filter(|&k| path[k].2 && path[k - 1].2)
+        .map(|k| t[k] - t[k - 1])
+        .sum();
+    let seen_share = on_len / total;
+    if seen_share < params.min_seen_share {
+        return Err(PerceptionError::ThreadHidden { seen_share });
+    }
+
+    // Observations: centres in the left view, disparities where the rows cross it.
+    let lview = View {
+        image: left,
+        roi,
+        mask: &mask,
+    };
+    let rview = View {
+        image: right,
+        roi: right_roi,
+        mask: &rmask,
+    };
+    let sin_min = params.min_crossing_rad.sin();
+    let mut uv = Vec::new(); // (t, u, v)
+    // Every row crossing, with every disparity the right view's row allows.
+    let mut crossings: Vec<(f64, Vec<f64>)> = Vec::new(); // (t, candidate disparities)
+    let mut measured_rows = std::collections::HashSet::new();
+    for k in 0..path.len() {
+        let (x, y, on) = path[k];
+        if !on {
+            continue;
+        }
+        let (a, b) = (k.saturating_sub(4), (k + 4).min(path.len() - 1));
+        let (tx, ty) = (smooth[b][0] - smooth[a][0], smooth[b][1] - smooth[a][1]);
+        let n = tx.hypot(ty);
+        if n < 1e-9 {
+            continue;
+        }
+        let row = y as u32;
+        if (ty / n).abs() >= sin_min {
+            let Some((l0, l1)) = lview.run(x as i64, row) else {
+                continue;
+            };
+            let xl = lview.centre(l0, l1, row);
+            uv.push((t[k], xl, y));
+            if !measured_rows.insert((row, l0)) {
+                continue;
+            }
+            let c: Vec<f64> = rview
+                .runs(xl - disparity[1], xl - disparity[0], row)
+                .into_iter()
+                .map(|xr| xl - xr)
+                .collect();
+            if !c.is_empty() {
+                crossings.push((t[k], c));
+            }
+        } else if let Some(yc) = lview.column_centre(x as i64, row) {
+            uv.push((t[k], x, yc));
+        }
+    }
+    let disp = smoothest(
+        &crossings,
+        start.map(|s| (0.0, s[2])),
+        (total, swage[2]),
+        params.search_px,
+    );
+    if disp.len() < params.min_matched {
+        return Err(PerceptionError::ThreadUntraced {
+            why: format!(
+                "only {} points matched between the views ({} needed)",
+                disp.len(),
+                params.min_matched
+            ),
+        });
+    }
+
+    // The ends, as observations with the hint's uncertainty.
+    let end_obs = |e: [f64; 3]| -> [f64; 3] {
+        let z = calib.fx * calib.baseline_m / e[2];
+        let s_px = calib.fx * params.end_sigma_m / z;
+        let s_d = e[2] / z * params.end_sigma_m;
+        [s_px, s_px, s_d.max(0.1)]
+    };
+    let mut ends: Vec<(f64, [f64; 3], [f64; 3])> = vec![(total, swage, end_obs(swage))];
+    if let Some(s) = start {
+        ends.push((0.0, s, end_obs(s)));
+    }
+    let k_count = ((total / params.knot_px).ceil() as usize + 3).clamp(6, 80);
+    let basis = Basis {
+        count: k_count,
+        span: total,
+    };
+    let cs = params.centre_sigma_px;
+    let ds = params.disparity_sigma_px;
+    let axis_obs = |axis: usize| -> Vec<(f64, f64, f64)> {
+        let mut o: Vec<(f64, f64, f64)> = match axis {
+            0 => uv.iter().map(|&(t, u, _)| (t, u, cs)).collect(),
+            1 => uv.iter().map(|&(t, _, v)| (t, v, cs)).collect(),
+            _ => disp.iter().map(|&(t, d)| (t, d, ds)).collect(),
+        };
+        o.extend(ends.iter().map(|(t, e, s)| (*t, e[axis], s[axis])));
+        o
+    };
+    let fit_all = |smoothing: f64| -> Option<[Fit; 3]> {
+        let mut fits = Vec::with_capacity(3);
+        for axis in 0..3 {
+            let mut obs = axis_obs(axis);
+            let mut f = basis.fit(&obs, smoothing)?;
+            // Once: drop observations far off the first fit (a wrong match, a speck).
+            let floor = if axis == 2 { 1.5 } else { 2.0 };
+            let before = obs.len();
+            obs.retain(|&(t, y, s)| (basis.eval(&f.coef, t) - y).abs() <= (4.0 * s).max(floor));
+            if obs.len() < before {
+                f = basis.fit(&obs, smoothing)?;
+            }
+            fits.push(f);
+        }
+        fits.try_into().ok()
+    };
+    let samples = ((total / 3.0).ceil() as usize).clamp(16, 600);
+    let curve = |fits: &[Fit; 3]| -> (Vec<Point>, Vec<f64>, Vec<f64>) {
+        let mut pts = Vec::with_capacity(samples + 1);
+        let mut sig = Vec::with_capacity(samples + 1);
+        let mut ts = Vec::with_capacity(samples + 1);
+        for i in 0..=samples {
+            let tt = total * i as f64 / samples as f64;
+            let (u, v, d) = (
+                basis.eval(&fits[0].coef, tt),
+                basis.eval(&fits[1].coef, tt),
+                basis.eval(&fits[2].coef, tt).max(1.0),
+            );
+            let z = calib.fx * calib.baseline_m / d;
+            let (xc, yc) = ((u - calib.cx) * z / calib.fx, (v - calib.cy) * z / calib.fy);
+            // Back-projection's Jacobian, applied to each axis's posterior variance.
+            let (su2, sv2, sd2) = (
+                fits[0].variance(&basis, tt) + cs * cs * 0.25,
+                fits[1].variance(&basis, tt) + cs * cs * 0.25,
+                fits[2].variance(&basis, tt) + ds * ds * 0.25,
+            );
+            let dz_dd = z / d;
+            let var = su2 * (z / calib.fx).powi(2)
+                + sv2 * (z / calib.fy).powi(2)
+                + sd2 * (dz_dd.powi(2) * (1.0 + (xc / z).powi(2) + (yc / z).powi(2)));
+            pts.push(calib.camera_to_robot * Point::new(xc, yc, z));
+            sig.push(var.sqrt());
+            ts.push(tt);
+        }
+        (pts, sig, ts)
+    };
+    let length = |pts: &[Point]| pts.windows(2).map(|w| (w[1] - w[0]).norm()).sum::<f64>();
+    let mut best: Option<([Fit; 3], f64)> = None;
+    match hint.length_m.filter(|l| *l > 0.0) {
+        // A length prior: the smoothing whose curve's length comes nearest it, weighed
+        // against how much the fit strays from the data.
+        Some(prior) => {
+            let sigma = (prior * params.length_prior_share).max(1e-4);
+            for scale in [0.1, 0.3, 1.0, 3.0, 10.0, 30.0] {
+                let Some(fits) = fit_all(params.smoothing * scale) else {
+                    continue;
+                };
+                let (pts, _, _) = curve(&fits);
+                let chi: f64 = fits.iter().map(|f| f.chi2).sum::<f64>()
+                    / (uv.len() + disp.len()).max(1) as f64;
+                let score = ((length(&pts) - prior) / sigma).powi(2) + chi;
+                if best.as_ref().is_none_or(|(_, s)| score < *s) {
+                    best = Some((fits, score));
+                }
+            }
+        }
+        None => best = fit_all(params.smoothing).map(|f| (f, 0.0)),
+    }
+    let Some((fits, _)) = best else {
+        return Err(PerceptionError::ThreadUntraced {
+            why: "the spline fit was singular".into(),
+        });
+    };
+    let (points, sigma_m, ts) = curve(&fits);
+    // Arc length in metres at each sample, to place the hidden spans.
+    let mut arc = vec![0.0; points.len()];
+    for i in 1..points.len() {
+        arc[i] = arc[i - 1] + (points[i] - points[i - 1]).norm();
+    }
+    let at = |tt: f64| -> f64 {
+        let i = ts.partition_point(|&x| x < tt).min(ts.len() - 1);
+        arc[i]
+    };
+    let mut hidden = Vec::new();
+    let mut k = 0;
+    while k < path.len() {
+        if path[k].2 {
+            k += 1;
+            continue;
+        }
+        let s = k;
+        while k < path.len() && !path[k].2 {
+            k += 1;
+        }
+        if t[k.min(path.len() - 1)] - t[s] >= 3.0 {
+            hidden.push([at(t[s.saturating_sub(1)]), at(t[k.min(path.len() - 1)])]);
+        }
+    }
+    let length_m = arc.last().copied().unwrap_or(0.0);
+    Ok((
+        ThreadTrace {
+            points,
+            sigma_m,
+            length_m,
+            hidden,
+            seen_share,
+            matched: disp.len(),
+            left_path_px: path.iter().map(|&(x, y, _)| [x, y]).collect(),
+        },
+        touches,
+    ))
+}
+
+/// The smoothest sequence of disparities through the crossings (Viterbi): one candidate
+/// (or none) at each, the disparity a random walk along the path (a step of `step_px` over
+/// a hundred pixels of path costs 1; a skipped crossing 4), pinned loosely at the ends.
+fn smoothest(
+    crossings: &[(f64, Vec<f64>)],
+    start: Option<(f64, f64)>,
+    end: (f64, f64),
+    step_px: f64,
+) -> Vec<(f64, f64)> {
+    /// Crossings a transition may skip.
+    const REACH: usize = 12;
+    const SKIP: f64 = 4.0;
+    let var = step_px * step_px / 100.0;
+    let walk =
+        |d0: f64, t0: f64, d1: f64, t1: f64| (d1 - d0).powi(2) / (var * (t1 - t0).abs().max(1.0));
+    // The ends are known to a few pixels of disparity: loose, so a wrong hint does not
+    // choose the matches.
+    let end_walk = |d0: f64, t0: f64, d1: f64, t1: f64| walk(d0, t0, d1, t1) / 16.0;
+    let m = crossings.len();
+    let mut cost: Vec<Vec<f64>> = Vec::with_capacity(m);
+    let mut back: Vec<Vec<Option<(usize, usize)>>> = Vec::with_capacity(m);
+    for j in 0..m {
+        let (tj, cj) = &crossings[j];
+        let mut cj_cost = Vec::with_capacity(cj.len());
+        let mut cj_back = Vec::with_capacity(cj.len());
+        for &d in cj {
+            // From the start (skipping every crossing before this one).
+            let mut best = SKIP * j as f64 + start.map_or(0.0, |(t0, d0)| end_walk(d0, t0, d, *tj));
+            let mut from = None;
+            for i in j.saturating_sub(REACH)..j {
+                let (ti, ci) = &crossings[i];
+                for (a, &da) in ci.iter().enumerate() {
+                    let c = cost[i][a] + walk(da, *ti, d, *tj) + SKIP * (j - i - 1) as f64;
+                    if c < best {
+                        best = c;
+                        from = Some((i, a));
+                    }
+                }
+            }
+            cj_cost.push(best);
+            cj_back.push(from);
+        }
+        cost.push(cj_cost);
+        back.push(cj_back);
+    }
+    let mut best: Option<(f64, usize, usize)> = None;
+    for j in m.saturating_sub(REACH)..m {
+        for (a, &da) in crossings[j].1.iter().enumerate() {
+            let c =
+                cost[j][a] + end_walk(da, crossings[j].0, end.1, end.0) + SKIP * (m - j - 1) as f64;
+            if best.is_none_or(|(b, _, _)| c < b) {
+                best = Some((c, j, a));
+            }
+        }
+    }
+    let mut out = Vec::new();
+    let mut at = best.map(|(_, j, a)| (j, a));
+    while let Some((j, a)) = at {
+        out.push((crossings[j].0, crossings[j].1[a]));
+        at = back[j][a];
+    }
+    out.reverse();
+    out
+}
+
+/// The left region's thread mask, as a graph of pixels.
+struct Grid<'a> {
+    w: usize,
+    h: usize,
+    mask: &'a [u8],
+    gap: u32,
+}
+
+impl Grid<'_> {
+    /// A step's cost into cell `i`: 5 along a row or column, 7 diagonally (≈ 5√2), times
+    /// the gap cost off the thread.
+    fn step(&self, i: usize, diagonal: bool) -> u32 {
+        let base = if diagonal { 7 } else { 5 };
+        if self.mask[i] != 0 {
+            base
+        } else {
+            base * self.gap
+        }
+    }
+
+    fn neighbours(&self, i: usize) -> impl Iterator<Item = (usize, bool)> + '_ {
+        let (x, y) = ((i % self.w) as i64, (i / self.w) as i64);
+        const D: [(i64, i64); 8] = [
+            (-1, 0),
+            (1, 0),
+            (0, -1),
+            (0, 1),
+            (-1, -1),
+            (1, -1),
+            (-1, 1),
+            (1, 1),
+        ];
+        D.iter().filter_map(move |&(dx, dy)| {
+            let (nx, ny) = (x + dx, y + dy);
+            (nx >= 0 && ny >= 0 && (nx as usize) < self.w && (ny as usize) < self.h)
+                .then(|| (ny as usize * self.w + nx as usize, dx != 0 && dy != 0))
+        })
+    }
+
+    /// The cheapest path from `from` to `to` (A*, the octile distance on thread as its
+    /// heuristic), cells from `from`; without `to`, the path to the thread farthest from
+    /// `from` along the thread (steps off it allowed only across gaps of a few pixels).
+    fn path(&self, from: usize, to: Option<usize>) -> Vec<usize> {
+        let n = self.w * self.h;
+        let mut g = vec![u32::MAX; n];
+        let mut parent = vec![u32::MAX; n];
+        let mut heap = BinaryHeap::new();
+        let h = |i: usize| -> u32 {
+            to.map_or(0, |t| {
+                let dx = (i % self.w).abs_diff(t % self.w) as u32;
+                let dy = (i / self.w).abs_diff(t / self.w) as u32;
+                5 * dx.max(dy) + 2 * dx.min(dy)
+            })
+        };
+        // Without an end: off the thread only within a few pixels of it (or of the swage).
+        let near = if to.is_none() {
+            Some(self.near_thread(4, from))
+        } else {
+            None
+        };
+        g[from] = 0;
+        heap.push(Reverse((h(from), from as u32)));
+        let mut farthest = from;
+        while let Some(Reverse((f, i))) = heap.pop() {
+            let i = i as usize;
+            if f > g[i].saturating_add(h(i)) {
+                continue;
+            }
+            if Some(i) == to {
+                break;
+            }
+            if to.is_none() && self.mask[i] != 0 && g[i] > g[farthest] {
+                farthest = i;
+            }
+            for (j, diag) in self.neighbours(i) {
+                if near.as_ref().is_some_and(|m| !m[j]) {
+                    continue;
+                }
+                let c = g[i] + self.step(j, diag);
+                if c < g[j] {
+                    g[j] = c;
+                    parent[j] = i as u32;
+                    heap.push(Reverse((c + h(j), j as u32)));
+                }
+            }
+        }
+        let end = to.unwrap_or(farthest);
+        if g[end] == u32::MAX {
+            return vec![from];
+        }
+        let mut out = vec![end];
+        let mut i = end;
+        while i != from {
+            i = parent[i] as usize;
+            out.push(i);
+        }
+        out.reverse();
+        out
+    }
+
+    /// Cells within `r` (Chebyshev) of thread or of `seed`.
+    fn near_thread(&self, r: usize, seed: usize) -> Vec<bool> {
+        let mut out = vec![false; self.w * self.h];
+        let mark = |out: &mut Vec<bool>, i: usize, r: usize| {
+            let (x, y) = (i % self.w, i / self.w);
+            for yy in y.saturating_sub(r)..(y + r + 1).min(self.h) {
+                for xx in x.saturating_sub(r)..(x + r + 1).min(self.w) {
+                    out[yy * self.w + xx] = true;
+                }
+            }
+        };
+        for i in 0..self.w * self.h {
+            if self.mask[i] != 0 {
+                mark(&mut out, i, r);
+            }
+        }
+        mark(&mut out, seed, 3 * r);
+        out
+    }
+
+    /// Whether thread 8-connected to the path's thread cells touches the region's border.
+    fn reaches_border(&self, path: &[usize], border: impl Fn(usize) -> bool) -> bool {
+        let mut seen = vec![false; self.w * self.h];
+        let mut stack: Vec<usize> = path
+            .iter()
+            .copied()
+            .filter(|&i| self.mask[i] != 0)
+            .collect();
+        for &i in &stack {
+            seen[i] = true;
+        }
+        while let Some(i) = stack.pop() {
+            if border(i) {
+                return true;
+            }
+            for (j, _) in self.neighbours(i) {
+                if !seen[j] && self.mask[j] != 0 {
+                    seen[j] = true;
+                    stack.push(j);
+                }
+            }
+        }
+        false
+    }
+}
+
+/// One view's image and thread mask over a region.
+struct View<'a> {
+    image: &'a RgbImage,
+    roi: Rect,
+    mask: &'a [u8],
+}
+
+/// The longest run of thread along a row the tracer takes as a crossing, pixels.
+const MAX_RUN_PX: i64 = 12;
+
+impl View<'_> {
+    fn on(&self, x: i64, y: u32) -> bool {
+        let r = &self.roi;
+        x >= i64::from(r.x0)
+            && x < i64::from(r.x1)
+            && y >= r.y0
+            && y < r.y1
+            && self.mask[((y - r.y0) * r.width()) as usize + (x - i64::from(r.x0)) as usize] != 0
+    }
+
+    /// How violet a pixel is: blue over the mean of red and green, levels (0 outside).
+    fn weight(&self, x: i64, y: u32) -> f64 {
+        if x < 0 || x >= i64::from(self.image.width) || y >= self.image.height {
+            return 0.0;
+        }
+        let i = (y as usize * self.image.width as usize + x as usize) * 3;
+        let p = &self.image.data[i..i + 3];
+        f64::from(p[2]) - (f64::from(p[0]) + f64::from(p[1])) / 2.0
+    }
+
+    /// The run of thread on row `y` through column `x`: first and last columns.
+    fn run(&self, x: i64, y: u32) -> Option<(i64, i64)> {
+        if !self.on(x, y) {
+            return None;
+        }
+        let (mut a, mut b) = (x, x);
+        while self.on(a - 1, y) && x - a < MAX_RUN_PX {
+            a -= 1;
+        }
+        while self.on(b + 1, y) && b - x < MAX_RUN_PX {
+            b += 1;
+        }
+        (b - a < MAX_RUN_PX).then_some((a, b))
+    }
+
+    /// The sub-pixel centre of a run on row `y`: columns weighted by how violet they are
+    /// above the row's background beside the run (pixel centres at +0.5).
+    fn centre(&self, a: i64, b: i64, y: u32) -> f64 {
+        let bg = self.weight(a - 2, y).min(self.weight(b + 2, y));
+        let (mut sw, mut sx) = (0.0, 0.0);
+        for x in a - 1..=b + 1 {
+            let w = (self.weight(x, y) - bg).max(0.0);
+            sw += w;
+            sx += w * (x as f64 + 0.5);
+        }
+        if sw > 0.0 {
+            sx / sw
+        } else {
+            (a + b) as f64 / 2.0 + 0.5
+        }
+    }
+
+    /// The sub-pixel row centre of the run of thread down column `x` through row `y`.
+    fn column_centre(&self, x: i64, y: u32) -> Option<f64> {
+        let (mut a, mut b) = (y, y);
+        while a > 0 && self.on(x, a - 1) && y - a < MAX_RUN_PX as u32 {
+            a -= 1;
+        }
+        while self.on(x, b + 1) && b - y < MAX_RUN_PX as u32 {
+            b += 1;
+        }
+        if b - a >= MAX_RUN_PX as u32 {
+            return None;
+        }
+        let (mut sw, mut sy) = (0.0, 0.0);
+        let bg = self
+            .weight(x, a.saturating_sub(2))
+            .min(self.weight(x, b + 2));
+        for yy in a.saturating_sub(1)..=b + 1 {
+            let w = (self.weight(x, yy) - bg).max(0.0);
+            sw += w;
+            sy += w * (f64::from(yy) + 0.5);
+        }
+        Some(if sw > 0.0 {
+            sy / sw
+        } else {
+            f64::from(a + b) / 2.0 + 0.5
+        })
+    }
+
+    /// The centres of the runs on row `y` between columns `lo` and `hi`.
+    fn runs(&self, lo: f64, hi: f64, y: u32) -> Vec<f64> {
+        let (lo, hi) = (lo.floor() as i64, hi.ceil() as i64);
+        let mut out = Vec::new();
+        let mut c = lo.max(i64::from(self.roi.x0));
+        let hi = hi.min(i64::from(self.roi.x1) - 1);
+        while c <= hi {
+            if self.on(c, y) {
+                let a = c;
+                while self.on(c + 1, y) {
+                    c += 1;
+                }
+                if c - a < MAX_RUN_PX {
+                    out.push(self.centre(a, c, y));
+                }
+            }
+            c += 1;
+        }
+        out
+    }
+}
+
+/// A uniform cubic B-spline basis of `count` functions over `[0, span]`.
+struct Basis {
+    count: usize,
+    span: f64,
+}
+
+/// One axis's fitted spline: coefficients, the inverse of its normal matrix (the posterior
+/// covariance of the coefficients, in the observations' units) and its χ².
+struct Fit {
+    coef: DVector<f64>,
+    cov: DMatrix<f64>,
+    chi2: f64,
+}
+
+impl Fit {
+    fn variance(&self, b: &Basis, t: f64) -> f64 {
+        let (i, w) = b.weights(t);
+        let mut v = 0.0;
+        for (a, wa) in w.iter().enumerate() {
+            for (c, wc) in w.iter().enumerate() {
+                v += wa * wc * self.cov[(i + a, i + c)];
+            }
+        }
+        v.max(0.0)
+    }
+}
+
+impl Basis {
+    /// The first of the four functions non-zero at `t`, and their values.
+    fn weights(&self, t: f64) -> (usize, [f64; 4]) {
+        let segments = (self.count - 3) as f64;
+        let s = (t / self.span).clamp(0.0, 1.0) * segments;
+        let i = (s.floor() as usize).min(self.count - 4);
+        let u = s - i as f64;
+        let u2 = u * u;
+        let u3 = u2 * u;
+        (
+            i,
+            [
+                (1.0 - u).powi(3) / 6.0,
+                (3.0 * u3 - 6.0 * u2 + 4.0) / 6.0,
+                (-3.0 * u3 + 3.0 * u2 + 3.0 * u + 1.0) / 6.0,
+                u3 / 6.0,
+            ],
+        )
+    }
+
+    fn eval(&self, coef: &DVector<f64>, t: f64) -> f64 {
+        let (i, w) = self.weights(t);
+        (0..4).map(|k| w[k] * coef[i + k]).sum()
+    }
+
+    /// Penalised least squares: `(t, value, sigma)` observations, `smoothing` on the
+    /// coefficients' second differences.
+    fn fit(&self, obs: &[(f64, f64, f64)], smoothing: f64) -> Option<Fit> {
+        let n = self.count;
+        let mut a = DMatrix::<f64>::zeros(n, n);
+        let mut rhs = DVector::<f64>::zeros(n);
+        for &(t, y, s) in obs {
+            let (i, w) = self.weights(t);
+            let wt = 1.0 / (s * s).max(1e-12);
+            for p in 0..4 {
+                rhs[i + p] += wt * w[p] * y;
+                for q in 0..4 {
+                    a[(i + p, i + q)] += wt * w[p] * w[q];
+                }
+            }
+        }
+        for k in 0..n - 2 {
+            let d = [1.0, -2.0, 1.0];
+            for p in 0..3 {
+                for q in 0..3 {
+                    a[(k + p, k + q)] += smoothing * d[p] * d[q];
+                }
+            }
+        }
+        let chol = a.cholesky()?;
+        let coef = chol.solve(&rhs);
+        let mut cov = chol.inverse();
+        let chi2: f64 = obs
+            .iter()
+            .map(|&(t, y, s)| {
+                let r = (self.eval(&coef, t) - y) / s.max(1e-12);
+                r * r
+            })
+            .sum();
+        // Residuals larger than the stated uncertainties say the uncertainties were too
+        // small: scale the covariance by the reduced χ² when it exceeds 1.
+        let dof = obs.len().saturating_sub(n / 2).max(1) as f64;
+        cov *= (chi2 / dof).max(1.0);
+        Some(Fit { coef, cov, chi2 })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_basis_sums_to_one_and_fits_a_line_exactly() {
+        let b = Basis {
+            count: 10,
+            span: 100.0,
+        };
+        for t in [0.0, 3.3, 50.0, 99.9, 100.0] {
+            let (_, w) = b.weights(t);
+            assert!((w.iter().sum::<f64>() - 1.0).abs() < 1e-12);
+        }
+        let obs: Vec<_> = (0..=50)
+            .map(|k| {
+                let t = 2.0 * k as f64;
+                (t, 3.0 + 0.5 * t, 0.3)
+            })
+            .collect();
+        let f = b.fit(&obs, 10.0).expect("fits");
+        for t in [0.0, 17.0, 64.0, 100.0] {
+            assert!((b.eval(&f.coef, t) - (3.0 + 0.5 * t)).abs() < 1e-6, "{t}");
+        }
+        // Where there is no data, the fit is less sure.
+        let gappy: Vec<_> = obs
+            .iter()
+            .filter(|o| !(30.0..70.0).contains(&o.0))
+            .copied()
+            .collect();
+        let g = b.fit(&gappy, 10.0).expect("fits");
+        assert!(g.variance(&b, 50.0) > 3.0 * g.variance(&b, 10.0));
+    }
+}
