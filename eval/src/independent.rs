@@ -61,6 +61,19 @@ pub struct Sample {
 }
 
 impl Sample {
+    /// The thread: its centreline from where it enters the tissue to the swage, that end,
+    /// and the swage, m.
+    pub fn thread_truth(&self) -> (Vec<Point>, Point, Point) {
+        let caps = &self.scene.capsules[..self.scene.thread_capsules];
+        let mut line: Vec<Point> = caps.iter().map(|c| c.a).collect();
+        if let Some(c) = caps.last() {
+            line.push(c.b);
+        }
+        line.reverse();
+        let (start, swage) = (line[0], line[line.len() - 1]);
+        (line, start, swage)
+    }
+
     /// "tip", "swage" (the end the jaw holds nearer) or "none", for tables.
     pub fn jaw_label(&self) -> &'static str {
         match self.jaw {

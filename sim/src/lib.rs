@@ -18,10 +18,11 @@ pub use render::{
 };
 pub use sensing::{NoiseSpec, SensingConfig, SensingFailure};
 pub use streams::{Streams, Subsystem};
-pub use thread::{Thread, ThreadConfig};
+pub use thread::{Capsule, Ground, Thread, ThreadConfig, tool_capsules};
 pub use world::{
     GRASP_MIN_CROSSING_RAD, JAW_LENGTH_M, MockArm, MockDvrk, MockJaw, NeedlePlace, NeedleTruth,
-    PsmConfig, SceneConfig, Side, grasp_in_needle_frame, jaw_reaches_needle, nearest_on_needle,
+    PsmConfig, SceneConfig, Side, grasp_in_needle_frame, ground_of, jaw_reaches_needle,
+    nearest_on_needle,
 };
 
 /// Errors of the mock dVRK.

@@ -659,6 +659,46 @@ impl Thread {
         Ok(t)
     }
 
+    /// A thread after a stitch: `config.length_m` of it free from `from` (the stitch's exit,
+    /// held there by the tissue) to the swage, laid to `side` and settled `settles` times
+    /// (each [`SETTLE_ITERATIONS`] iterations; gravity lowers a link 0.1 mm an iteration)
+    /// round `tools`.
+    /// What the thread tracer's evaluation draws.
+    pub fn hanging(
+        config: ThreadConfig,
+        ground: Ground,
+        from: Point,
+        swage: Point,
+        side: Vector,
+        tools: &[Capsule],
+        settles: u32,
+    ) -> Result<Self, SimError> {
+        config.validate()?;
+        let n = (config.length_m / config.segment_m).round() as usize + 1;
+        let mut t = Self {
+            config,
+            ground,
+            stitches: vec![],
+            free: Chain {
+                points: bowed(from, swage, n, config.segment_m, side, &ground),
+                first_held: true,
+                last_held: true,
+                resting: (vec![], None),
+            },
+            open_loop: None,
+            loop_is_tail: false,
+            tissue_m: 0.0,
+            caught: false,
+            tangled: false,
+            short: false,
+            anchor: Some(from),
+        };
+        for _ in 0..settles.max(1) {
+            t.settle(swage, tools);
+        }
+        Ok(t)
+    }
+
     /// Free thread on the needle's side of the suture line, m.
     pub fn remaining_m(&self) -> f64 {
         self.free.rest_length(self.config.segment_m)

@@ -566,6 +566,21 @@ impl MockDvrk {
         self.lock().thread.clone()
     }
 
+    /// The free thread as the camera would see it: its links from where it leaves the suture
+    /// line to the swage, each with whether a tool hides it (a jaw, wrist or shaft within the
+    /// occlusion radius of it: the camera looks down on the tools), m.
+    pub fn thread_in_view(&self) -> Vec<(Point, bool)> {
+        let s = self.lock();
+        let tools = s.tool_bodies(None);
+        let r = s.thread.config.occlusion_radius_m;
+        s.thread
+            .free
+            .points
+            .iter()
+            .map(|p| (*p, tools.iter().any(|c| c.axis_distance(p) <= r + c.radius)))
+            .collect()
+    }
+
     /// The wound point whose tissue holds the needle, if any.
     pub fn lodged(&self) -> Option<usize> {
         self.lock().lodged
@@ -1124,7 +1139,8 @@ impl Jaw for MockJaw {
 }
 
 /// What the thread rests on: the pad and the raised wound, as the renderer draws them.
-fn ground_of(phantom: &Phantom) -> Ground {
+/// What the thread rests on: the pad and the raised wound of `phantom`.
+pub fn ground_of(phantom: &Phantom) -> Ground {
     let points = &phantom.wound.points;
     let (first, last) = (&points[0], &points[points.len() - 1]);
     let mid = |wp: &stitch_robot::WoundPoint| Point::from((wp.entry.coords + wp.exit.coords) / 2.0);
