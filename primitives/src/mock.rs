@@ -106,7 +106,63 @@ impl NeedleEstimator for ModelEstimator {
             }
         }
     }
+
+    /// The thread tracer's model: the mock's free thread, each link moved by noise of
+    /// [`MODEL_THREAD_SIGMA_M`] per axis; hidden where a tool hides it, and a typed failure
+    /// when less than the tracer's least share is seen (the hint is not needed: the model
+    /// knows where the thread is).
+    fn trace_thread(
+        &mut self,
+        _hint: &stitch_perception::ThreadHint,
+    ) -> Result<stitch_perception::ThreadTrace, stitch_perception::PerceptionError> {
+        use rand::Rng;
+        let links = self.world.thread_in_view();
+        let seen = links.iter().filter(|(_, hidden)| !hidden).count();
+        let seen_share = seen as f64 / links.len().max(1) as f64;
+        if seen_share < stitch_perception::ThreadParams::default().min_seen_share {
+            return Err(stitch_perception::PerceptionError::ThreadHidden { seen_share });
+        }
+        let s = MODEL_THREAD_SIGMA_M;
+        // The sum of three uniforms on [-1, 1]: standard deviation 1 (as the needle's model).
+        let mut normal = || {
+            (0..3)
+                .map(|_| self.rng.random_range(-1.0..=1.0))
+                .sum::<f64>()
+        };
+        let points: Vec<Point> = links
+            .iter()
+            .map(|(p, _)| p + stitch_robot::Vector::new(normal(), normal(), normal()) * s)
+            .collect();
+        let mut arc = vec![0.0; points.len()];
+        for i in 1..points.len() {
+            arc[i] = arc[i - 1] + (points[i] - points[i - 1]).norm();
+        }
+        let mut hidden: Vec<[f64; 2]> = Vec::new();
+        for (i, (_, h)) in links.iter().enumerate() {
+            if !h {
+                continue;
+            }
+            let (from, to) = (arc[i.saturating_sub(1)], arc[(i + 1).min(arc.len() - 1)]);
+            match hidden.last_mut() {
+                Some(last) if last[1] >= from => last[1] = to,
+                _ => hidden.push([from, to]),
+            }
+        }
+        Ok(stitch_perception::ThreadTrace {
+            sigma_m: vec![s * 3f64.sqrt(); points.len()],
+            length_m: arc.last().copied().unwrap_or(0.0),
+            points,
+            hidden,
+            seen_share,
+            matched: seen,
+            left_path_px: vec![],
+        })
+    }
 }
+
+/// The thread tracer model's noise per axis (the stereo tracer's median error on rendered
+/// pairs is about 0.1 mm, its 90th percentile a few millimetres: docs/perception.md), m.
+pub const MODEL_THREAD_SIGMA_M: f64 = 0.0005;
 
 /// Where the primitives work on the mock, from its scene.
 pub fn mock_layout(scene: &SceneConfig, sensing: &SensingConfig) -> Layout {

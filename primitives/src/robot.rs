@@ -151,6 +151,11 @@ pub struct RobotPrimitives {
     left_end: NeedleEnd,
     /// Why the estimator gave no estimate, each cycle of the current step it gave none.
     unseen: Vec<String>,
+    /// Where the free thread leaves the suture line: the exit of the last stitch the needle
+    /// was drawn out of (none before the first).
+    thread_from: Option<Point>,
+    /// The latest thread trace.
+    last_trace: Option<stitch_perception::ThreadTrace>,
 }
 
 /// Why a step stops before its end: it failed (boxed: a failure carries its measurements), or
@@ -324,6 +329,8 @@ impl RobotPrimitives {
             rig,
             corrected_grasp: None,
             last_point: None,
+            thread_from: None,
+            last_trace: None,
             previous_point: None,
             last_estimate: None,
             left_end: NeedleEnd::Tip,
@@ -696,6 +703,7 @@ impl RobotPrimitives {
             };
             return Err(Halt::with(kind, measured));
         }
+        self.thread_from = self.last_point.as_ref().map(|wp| wp.exit);
         Ok(measured)
     }
 
@@ -852,16 +860,51 @@ impl RobotPrimitives {
 
     /// A perception query. No commit point: nothing moves.
     fn perceive(&mut self, c: &mut dyn StepControl, kind: &StepKind) -> Step<Measurements> {
-        // No thread tracer yet: for `track_thread`, what the scene shows about the thread is
-        // all there is.
-        if let StepKind::EstimateNeedle(p) = kind {
-            for _ in 0..p.samples.max(1) {
-                self.estimate(c, None)?;
+        let mut measured = Measurements::default();
+        match kind {
+            StepKind::EstimateNeedle(p) => {
+                for _ in 0..p.samples.max(1) {
+                    self.estimate(c, None)?;
+                }
             }
+            StepKind::TrackThread(_) => {
+                measured.thread_left_m = Some(self.track_thread(c)?.length_m);
+            }
+            _ => {}
         }
         match self.problem() {
-            Some(kind) => Err(failed(kind)),
-            None => Ok(Measurements::default()),
+            Some(kind) => Err(Halt::with(kind, measured)),
+            None => Ok(measured),
+        }
+    }
+
+    /// Trace the free thread: the swage from a needle estimate, the other end where the last
+    /// stitch left the thread. A trace that cannot be made (the thread hidden, not found) is
+    /// a perception dropout, retried as the step's `retries` say; a failing camera or model
+    /// is a fault.
+    fn track_thread(&mut self, c: &mut dyn StepControl) -> Step<stitch_perception::ThreadTrace> {
+        let needle = self.estimate(c, None)?;
+        let (_, _, _, swage) = needle.features(&self.rig.needle);
+        let hint = stitch_perception::ThreadHint {
+            start: self.thread_from,
+            swage,
+            length_m: None,
+        };
+        self.go_on(c)?;
+        match self.rig.estimator.trace_thread(&hint) {
+            Ok(t) => {
+                self.last_trace = Some(t.clone());
+                Ok(t)
+            }
+            Err(e @ (PerceptionError::Camera { .. } | PerceptionError::Model { .. })) => {
+                Err(failed(FailureKind::ArmFault {
+                    message: format!("perception: {e}"),
+                }))
+            }
+            Err(e) => {
+                self.unseen.push(format!("thread: {e}"));
+                Err(failed(FailureKind::PerceptionDropout))
+            }
         }
     }
 }
