@@ -5,11 +5,16 @@
 //! 1. **Masks**: the segmenter's thread mask in both views, over a region around the two ends
 //!    (the last exit point, known to the plan, and the swage, pinned by the needle estimate)
 //!    grown by `margin_m`; grown again while the thread runs off its edge.
-//! 2. **Centreline** in the left view: the cheapest path from the exit point's pixel to the
-//!    swage's through the mask, where a step on thread costs 1 and a step off it `gap_cost`
-//!    (A* over the pixels): it follows the thread and bridges what a jaw or the needle hides
-//!    with a straight line; those steps are the hidden spans. Without an exit point (before
-//!    the first stitch) the path runs from the swage to the farthest thread it reaches.
+//! 2. **Centreline** in the left view, from the exit point's pixel to the swage's. Three
+//!    candidates: the cheapest path through the mask, where a step on thread costs 1 and a
+//!    step off it `gap_cost` (A* over 2 × 2 blocks), which bridges what a jaw or the needle
+//!    hides with a straight line but cuts across loops where the thread touches itself; and
+//!    two walks along the thread (setting out along that path, or along the longest run of
+//!    thread from the exit), straight on through crossings, round sharp kinks onto thread
+//!    not yet walked, across short gaps, and bridged to the swage by the cheapest path where
+//!    they lose it. The candidate with the most thread on it, less twice its gaps, wins.
+//!    Off-thread steps are the hidden spans. Without an exit point (before the first
+//!    stitch) the path runs from the swage to the farthest thread it reaches.
 //! 3. **Correspondence**: along the path from its first end, each row the thread crosses
 //!    steeply enough (more than `min_crossing_rad` from the epipolar lines) is looked up on
 //!    the same row of the right view near the disparity the last match had; the two rows'
@@ -306,26 +311,86 @@ fn trace_in(
         gap: params.gap_cost.max(1),
     };
     let from = cell(swage[0], swage[1]);
-    let cells = match start {
-        Some(s) => grid.path(from, Some(cell(s[0], s[1]))),
-        None => grid.path(from, None),
+    // The path from the first end to the swage, image pixels, and whether each point is on
+    // the thread.
+    let local = |u: f64, v: f64| (u - f64::from(roi.x0), v - f64::from(roi.y0));
+    let to_image =
+        |(x, y, on): (f64, f64, bool)| (x + f64::from(roi.x0), y + f64::from(roi.y0), on);
+    let block_path = |cells: &[usize]| -> Vec<(f64, f64, bool)> {
+        cells
+            .iter()
+            .map(|&i| {
+                let (bx, by) = (2 * (i % cw), 2 * (i / cw));
+                let on = (0..4)
+                    .map(|k| (bx + k % 2, by + k / 2))
+                    .find(|&(x, y)| x < w && y < h && mask[y * w + x] != 0);
+                let (x, y) = on.map_or((bx as f64 + 1.0, by as f64 + 1.0), |(x, y)| {
+                    (x as f64 + 0.5, y as f64 + 0.5)
+                });
+                (x, y, on.is_some())
+            })
+            .collect()
     };
-    // From the first end to the swage: each block's first thread pixel (or its centre), and
-    // whether it is thread.
-    let path: Vec<(f64, f64, bool)> = cells
+    let local_path: Vec<(f64, f64, bool)> = match start {
+        // Walk along the thread from the exit point, straight on through crossings, as far
+        // as it goes; the cheapest path bridges the rest to the swage.
+        Some(s) => {
+            let walker = Walker { mask: &mask, w, h };
+            let goal = local(swage[0], swage[1]);
+            let score = |path: &[(f64, f64, bool)]| -> f64 {
+                path.windows(2)
+                    .map(|q| {
+                        let d = (q[1].0 - q[0].0).hypot(q[1].1 - q[0].1);
+                        if q[0].2 && q[1].2 { d } else { -2.0 * d }
+                    })
+                    .sum()
+            };
+            // Which way the thread leaves the start: where the cheapest path goes.
+            let mut cheapest = grid.path(from, Some(cell(s[0], s[1])));
+            cheapest.reverse();
+            let first = block_path(&cheapest);
+            let from_start = local(s[0], s[1]);
+            let ahead = first
+                .iter()
+                .find(|&&(x, y, _)| (x - from_start.0).hypot(y - from_start.1) >= 12.0)
+                .map_or(goal, |&(x, y, _)| (x, y));
+            // Three candidates: the cheapest path, and walks setting out along it or along
+            // the longest run of thread from the start, each bridged to the swage where it
+            // loses the thread. The one with the most thread on it (less twice its gaps)
+            // wins: a walk round a loop beats a path cutting across it.
+            let mut best = (score(&first), first);
+            for toward in [Some(ahead), None] {
+                let mut walked = walker.walk(from_start, toward, goal);
+                let reached = walked
+                    .last()
+                    .is_some_and(|&(x, y, _)| (x - goal.0).hypot(y - goal.1) < 2.0);
+                if !reached {
+                    let &(x, y, _) = walked.last().unwrap_or(&(goal.0, goal.1, false));
+                    let mut cells = grid.path(
+                        from,
+                        Some(cell(x + f64::from(roi.x0), y + f64::from(roi.y0))),
+                    );
+                    cells.reverse();
+                    walked.extend(block_path(&cells).into_iter().skip(1));
+                }
+                let sc = score(&walked);
+                if sc > best.0 {
+                    best = (sc, walked);
+                }
+            }
+            best.1
+        }
+        None => {
+            let mut cells = grid.path(from, None);
+            cells.reverse();
+            block_path(&cells)
+        }
+    };
+    let cells: Vec<usize> = local_path
         .iter()
-        .rev()
-        .map(|&i| {
-            let (bx, by) = (2 * (i % cw), 2 * (i / cw));
-            let on = (0..4)
-                .map(|k| (bx + k % 2, by + k / 2))
-                .find(|&(x, y)| x < w && y < h && mask[y * w + x] != 0);
-            let (x, y) = on.map_or((bx as f64 + 1.0, by as f64 + 1.0), |(x, y)| {
-                (x as f64 + 0.5, y as f64 + 0.5)
-            });
-            (x + f64::from(roi.x0), y + f64::from(roi.y0), on.is_some())
-        })
+        .map(|&(x, y, _)| cell(x + f64::from(roi.x0), y + f64::from(roi.y0)))
         .collect();
+    let path: Vec<(f64, f64, bool)> = local_path.into_iter().map(to_image).collect();
     if path.len() < 3 {
         return Err(PerceptionError::ThreadUntraced {
             why: "the ends are too close together in the image to trace between".into(),
@@ -782,6 +847,222 @@ impl Grid<'_> {
             }
         }
         false
+    }
+}
+
+/// Follows a thread mask from one end: a step of `WALK_STEP_PX` at a time in the middle of
+/// the directions that stay on the thread nearest straight on (so it runs down the
+/// centreline, and through a crossing rather than round the corner), jumping gaps of up to
+/// `WALK_GAP_PX` ahead. Unlike a cheapest path it keeps to loops the thread makes instead of
+/// cutting across where the thread touches itself.
+struct Walker<'a> {
+    mask: &'a [u8],
+    w: usize,
+    h: usize,
+}
+
+/// The walk's trail around each point it passes: the thread's width.
+const BRUSH: [(f64, f64); 13] = [
+    (0.0, 0.0),
+    (1.0, 0.0),
+    (-1.0, 0.0),
+    (0.0, 1.0),
+    (0.0, -1.0),
+    (1.0, 1.0),
+    (1.0, -1.0),
+    (-1.0, 1.0),
+    (-1.0, -1.0),
+    (2.0, 0.0),
+    (-2.0, 0.0),
+    (0.0, 2.0),
+    (0.0, -2.0),
+];
+/// The walk's step, pixels.
+const WALK_STEP_PX: f64 = 3.0;
+/// The widest gap the walk jumps, pixels.
+const WALK_GAP_PX: f64 = 24.0;
+/// The most the walk turns in one step, rad.
+const WALK_TURN: f64 = 1.05;
+
+impl Walker<'_> {
+    fn on(&self, x: f64, y: f64) -> bool {
+        let (xi, yi) = (x.floor() as i64, y.floor() as i64);
+        xi >= 0
+            && yi >= 0
+            && (xi as usize) < self.w
+            && (yi as usize) < self.h
+            && self.mask[yi as usize * self.w + xi as usize] != 0
+    }
+
+    /// The thread pixel nearest `p` within `r` pixels, as its centre.
+    fn nearest(&self, p: (f64, f64), r: i64) -> Option<(f64, f64)> {
+        let (px, py) = (p.0.floor() as i64, p.1.floor() as i64);
+        let mut best: Option<((f64, f64), f64)> = None;
+        for y in py - r..=py + r {
+            for x in px - r..=px + r {
+                let c = (x as f64 + 0.5, y as f64 + 0.5);
+                if self.on(c.0, c.1) {
+                    let d = (c.0 - p.0).hypot(c.1 - p.1);
+                    if best.is_none_or(|(_, b)| d < b) {
+                        best = Some((c, d));
+                    }
+                }
+            }
+        }
+        best.map(|(c, _)| c)
+    }
+
+    /// Share of the segment from `p`, `len` pixels at angle `a`, that is thread.
+    fn coverage(&self, p: (f64, f64), a: f64, len: f64) -> f64 {
+        let n = len.ceil().max(1.0) as usize;
+        (1..=n)
+            .filter(|&k| {
+                let t = len * k as f64 / n as f64;
+                self.on(p.0 + t * a.cos(), p.1 + t * a.sin())
+            })
+            .count() as f64
+            / n as f64
+    }
+
+    /// The walk from `start`, setting out towards `ahead` (or along the thread), to `goal` (pixels of the region):
+    /// points about a pixel apart and whether each is on the thread. It ends at `goal` when it comes within a few
+    /// pixels of it, or where it loses the thread.
+    fn walk(
+        &self,
+        start: (f64, f64),
+        ahead: Option<(f64, f64)>,
+        goal: (f64, f64),
+    ) -> Vec<(f64, f64, bool)> {
+        let Some(mut p) = self.nearest(start, 8) else {
+            return vec![(start.0, start.1, false)];
+        };
+        let mut out = vec![(start.0, start.1, self.on(start.0, start.1))];
+        // The first direction: towards `ahead`, or the longest run of thread from the start
+        // (towards the goal when two are as long).
+        let to_goal = (goal.1 - p.1).atan2(goal.0 - p.0);
+        let mut dir = match ahead {
+            Some(a) => (a.1 - p.1).atan2(a.0 - p.0),
+            None => (0..48)
+                .map(|k| f64::from(k) * std::f64::consts::TAU / 48.0)
+                .max_by(|a, b| {
+                    let score = |x: f64| self.coverage(p, x, 12.0) + 0.01 * (x - to_goal).cos();
+                    score(*a).total_cmp(&score(*b))
+                })
+                .unwrap_or(to_goal),
+        };
+        let goal_r = 4.0 * WALK_STEP_PX;
+        let budget = (20 * (self.w + self.h)) as f64 / WALK_STEP_PX * 4.0;
+        let mut visited = vec![0u16; self.w * self.h];
+        // The pixels the walk has passed, so that a sharp turn does not lead back.
+        let mut trail = vec![false; self.w * self.h];
+        let index = |x: f64, y: f64| -> Option<usize> {
+            (x >= 0.0 && y >= 0.0 && (x as usize) < self.w && (y as usize) < self.h)
+                .then(|| y as usize * self.w + x as usize)
+        };
+        let push =
+            |out: &mut Vec<(f64, f64, bool)>, trail: &mut Vec<bool>, q: (f64, f64), gap: bool| {
+                let &(x0, y0, _) = out.last().expect("a first point");
+                let n = (q.0 - x0).hypot(q.1 - y0).ceil().max(1.0) as usize;
+                for k in 1..=n {
+                    let t = k as f64 / n as f64;
+                    let (x, y) = (x0 + t * (q.0 - x0), y0 + t * (q.1 - y0));
+                    out.push((x, y, if gap && k < n { false } else { self.on(x, y) }));
+                    // A brush as wide as the thread, so that a sharp turn cannot lead back
+                    // along the thread's other edge.
+                    for (dx, dy) in BRUSH {
+                        if let Some(i) = index(x + dx, y + dy) {
+                            trail[i] = true;
+                        }
+                    }
+                }
+            };
+        push(&mut out, &mut trail, p, false);
+        let mut steps = 0.0;
+        while steps < budget {
+            steps += 1.0;
+            if (p.0 - goal.0).hypot(p.1 - goal.1) < goal_r {
+                push(&mut out, &mut trail, goal, !self.on(goal.0, goal.1));
+                return out;
+            }
+            // Directions within the turn limit, in order, and whether each stays on thread.
+            const N: i32 = 14;
+            let angles: Vec<f64> = (-N..=N)
+                .map(|k| dir + WALK_TURN * f64::from(k) / f64::from(N))
+                .collect();
+            let ok: Vec<bool> = angles
+                .iter()
+                .map(|&a| self.on(p.0 + WALK_STEP_PX * a.cos(), p.1 + WALK_STEP_PX * a.sin()))
+                .collect();
+            // The run of good directions nearest straight on; its middle.
+            let mut best: Option<(usize, usize, i32)> = None;
+            let mut k = 0;
+            while k < ok.len() {
+                if !ok[k] {
+                    k += 1;
+                    continue;
+                }
+                let a = k;
+                while k < ok.len() && ok[k] {
+                    k += 1;
+                }
+                let b = k - 1;
+                let off = if a as i32 <= N && N <= b as i32 {
+                    0
+                } else {
+                    (a as i32 - N).abs().min((b as i32 - N).abs())
+                };
+                if best.is_none_or(|(_, _, o)| off < o) {
+                    best = Some((a, b, off));
+                }
+            }
+            let next = match best {
+                Some((a, b, _)) => {
+                    let a = (angles[a] + angles[b]) / 2.0;
+                    Some((a, WALK_STEP_PX, false))
+                }
+                // No thread a step away within the turn: a sharp bend (a kink, the thread
+                // doubling back beside itself) onto thread the walk has not passed, the least
+                // turn first; else the nearest thread ahead across a gap.
+                None => (1..=14)
+                    .flat_map(|k| {
+                        let t = WALK_TURN + (2.8 - WALK_TURN) * f64::from(k) / 14.0;
+                        [dir + t, dir - t]
+                    })
+                    .find(|&a| {
+                        let d = 3.0 * WALK_STEP_PX;
+                        let (x, y) = (p.0 + d * a.cos(), p.1 + d * a.sin());
+                        self.on(x, y) && index(x, y).is_some_and(|i| !trail[i])
+                    })
+                    .map(|a| (a, 3.0 * WALK_STEP_PX, false))
+                    .or_else(|| {
+                        (2..=(WALK_GAP_PX / WALK_STEP_PX) as i32)
+                            .flat_map(|m| {
+                                (-4..=4).map(move |k| {
+                                    (dir + 0.35 * f64::from(k) / 4.0, WALK_STEP_PX * f64::from(m))
+                                })
+                            })
+                            .find(|&(a, d)| self.on(p.0 + d * a.cos(), p.1 + d * a.sin()))
+                            .map(|(a, d)| (a, d, true))
+                    }),
+            };
+            let Some((a, d, gap)) = next else {
+                break;
+            };
+            let q = (p.0 + d * a.cos(), p.1 + d * a.sin());
+            // Round a closed loop too often: lost.
+            let (qx, qy) = (q.0.floor() as usize, q.1.floor() as usize);
+            if qx < self.w && qy < self.h {
+                let v = &mut visited[qy * self.w + qx];
+                *v += 1;
+                if *v > 3 {
+                    break;
+                }
+            }
+            push(&mut out, &mut trail, q, gap);
+            dir = a;
+            p = q;
+        }
+        out
     }
 }
 

@@ -85,8 +85,8 @@ fn draw(
                 rgb = [60.0, 60.0, 66.0];
             }
             let i = ((y * c.width + x) * 3) as usize;
-            for k in 0..3 {
-                img.data[i + k] = (rgb[k] + noise()).clamp(0.0, 255.0) as u8;
+            for (k, c) in rgb.iter().enumerate() {
+                img.data[i + k] = (c + noise()).clamp(0.0, 255.0) as u8;
             }
         }
     }
