@@ -6,6 +6,7 @@ mod bench_supervision;
 mod console;
 mod mock;
 mod perceive;
+mod perceive_thread;
 mod plot;
 mod record;
 mod replay;
@@ -220,7 +221,7 @@ enum Command {
     #[command(after_help = EXIT_CODES)]
     Replay(replay::ReplayArgs),
     /// Benchmarks: `stitch bench perception`, `stitch bench segmentation`, `stitch bench
-    /// supervision`, `stitch bench ros2`.
+    /// thread`, `stitch bench supervision`, `stitch bench ros2`.
     Bench {
         #[command(subcommand)]
         command: perceive::BenchCommand,
@@ -348,6 +349,7 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
             #[cfg(feature = "ros2")]
             perceive::BenchCommand::Ros2(args) => ros2::bench(args),
             perceive::BenchCommand::Supervision(args) => bench_supervision::bench(args),
+            perceive::BenchCommand::Thread(args) => perceive_thread::bench(args),
             other => perceive::bench(other),
         },
         Command::Trials(args) => trials::trials(args),

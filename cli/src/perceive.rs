@@ -24,6 +24,10 @@ pub const NO_ESTIMATE: u8 = 6;
 
 #[derive(Debug, Subcommand)]
 pub enum PerceiveCommand {
+    /// Trace the thread in a rectified stereo pair, from the exit point (--start) to the
+    /// needle's swage (--swage); print the trace as JSON (points, their uncertainty, length,
+    /// hidden stretches), or the typed failure (exit code 6).
+    Thread(crate::perceive_thread::ThreadArgs),
     /// Estimate the needle pose from a rectified stereo pair; print it as JSON, or the
     /// typed failure (exit code 6).
     Needle {
@@ -115,6 +119,10 @@ pub enum PerceiveCommand {
         /// (docs/perception.md).
         #[arg(long, value_enum, default_value_t = EvalSet::Own)]
         set: EvalSet,
+        /// A pair of the thread tracer's evaluation set instead (--sample of it, default
+        /// the first), with thread-truth.json: the true curve, the exit point, the swage.
+        #[arg(long)]
+        thread: bool,
     },
     /// Labelled crops around the needle, to train or test a learned segmenter on: for each
     /// view with the needle in it, NNNNN.png (the needle's box grown by 24 px) and
@@ -206,6 +214,9 @@ pub enum BenchCommand {
     /// mock at --pace 1.0 in process and (--ros2) over ROS 2 against a sim-node in this
     /// process (docs/cli.md).
     Supervision(crate::bench_supervision::BenchSupervisionArgs),
+    /// The thread tracer against the truth on the own and independent sets: 3D error, length
+    /// error, how much of the truth its 2σ band covers, time per pair (docs/perception.md).
+    Thread(crate::perceive_thread::BenchThreadArgs),
     /// `servo_cp` streamed over ROS 2 (real DDS on loopback) to a sim-node in this process:
     /// one-way latency at 1 kHz against a 100 Hz baseline.
     #[cfg(feature = "ros2")]
@@ -283,7 +294,7 @@ pub enum HeldEnd {
     Tip,
 }
 
-fn parse_point(s: &str) -> Result<[f64; 3], String> {
+pub(crate) fn parse_point(s: &str) -> Result<[f64; 3], String> {
     let v: Vec<f64> = s
         .split(',')
         .map(|p| p.trim().parse::<f64>())
@@ -350,19 +361,19 @@ fn matcher(kind: MatcherKind) -> Box<dyn StereoMatcher> {
     }
 }
 
-fn read_calibration(path: &Path) -> anyhow::Result<StereoCalibration> {
+pub(crate) fn read_calibration(path: &Path) -> anyhow::Result<StereoCalibration> {
     let text =
         std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
     inputs::calibration(&text).with_context(|| format!("invalid calibration {}", path.display()))
 }
 
-fn read_png(path: &Path) -> anyhow::Result<RgbImage> {
+pub(crate) fn read_png(path: &Path) -> anyhow::Result<RgbImage> {
     let bytes =
         std::fs::read(path).with_context(|| format!("cannot read the image {}", path.display()))?;
     inputs::image(&bytes).with_context(|| format!("cannot read the image {}", path.display()))
 }
 
-fn write_png(path: &Path, img: &RgbImage) -> anyhow::Result<()> {
+pub(crate) fn write_png(path: &Path, img: &RgbImage) -> anyhow::Result<()> {
     let buf = image::RgbImage::from_raw(img.width, img.height, img.data.clone())
         .context("image buffer of the wrong size")?;
     buf.save_with_format(path, image::ImageFormat::Png)
@@ -609,11 +620,20 @@ pub fn perceive(command: PerceiveCommand) -> anyhow::Result<u8> {
             );
             Ok(0)
         }
+        PerceiveCommand::Thread(args) => crate::perceive_thread::perceive(args),
+        PerceiveCommand::Render {
+            out,
+            seed,
+            sample,
+            set,
+            thread: true,
+        } => crate::perceive_thread::render(&out, seed, sample, set),
         PerceiveCommand::Render {
             out,
             seed,
             sample,
             set: EvalSet::Independent,
+            thread: false,
         } => {
             let k = sample.unwrap_or(0);
             let set = stitch_eval::independent::dataset(k + 1, seed, Needle::default());
@@ -633,6 +653,7 @@ pub fn perceive(command: PerceiveCommand) -> anyhow::Result<u8> {
             seed,
             sample,
             set: EvalSet::Own,
+            thread: false,
         } => {
             let (renderer, world) = mock_renderer(seed)?;
             let (scene_and_truth, hint) = match sample {
@@ -709,7 +730,7 @@ fn write_rendered(
     Ok(crate::exit::OK)
 }
 
-fn failure_json(out: &mut impl Write, e: &PerceptionError) -> anyhow::Result<()> {
+pub(crate) fn failure_json(out: &mut impl Write, e: &PerceptionError) -> anyhow::Result<()> {
     let json = serde_json::json!({
         "failure": failure_kind(e),
         "message": e.to_string(),
@@ -720,7 +741,7 @@ fn failure_json(out: &mut impl Write, e: &PerceptionError) -> anyhow::Result<()>
 }
 
 /// The mock's default renderer and a world at its start.
-fn mock_renderer(seed: u64) -> anyhow::Result<(StereoRenderer, MockDvrk)> {
+pub(crate) fn mock_renderer(seed: u64) -> anyhow::Result<(StereoRenderer, MockDvrk)> {
     let world = MockDvrk::new(
         &SceneConfig::default(),
         Streams::new(seed),

@@ -601,3 +601,132 @@ mod onnx {
         std::fs::remove_dir_all(&d).ok();
     }
 }
+
+/// The thread tracer's evaluation pair `sample` (own set, seed 1) on disk, with its truth.
+fn rendered_thread(name: &str, sample: &str) -> (PathBuf, serde_json::Value) {
+    let d = dir(name);
+    let out = stitch(&[
+        "perceive",
+        "render",
+        "--thread",
+        "--sample",
+        sample,
+        "--seed",
+        "1",
+        "--out",
+        s(&d),
+    ]);
+    assert_eq!(out.status.code(), Some(0), "{}", text(&out.stderr));
+    let truth = serde_json::from_slice(&std::fs::read(d.join("thread-truth.json")).expect("truth"))
+        .expect("JSON");
+    (d, truth)
+}
+
+fn csv(v: [f64; 3]) -> String {
+    v.map(|x| x.to_string()).join(",")
+}
+
+fn to_segment(p: [f64; 3], a: [f64; 3], b: [f64; 3]) -> f64 {
+    let ab = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
+    let l2 = ab.iter().map(|x| x * x).sum::<f64>();
+    let t = if l2 > 0.0 {
+        ((0..3).map(|i| (p[i] - a[i]) * ab[i]).sum::<f64>() / l2).clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    dist(p, [0, 1, 2].map(|i| a[i] + t * ab[i]))
+}
+
+#[test]
+fn a_rendered_thread_on_disk_is_traced_near_its_truth_and_a_missing_one_fails_typed() {
+    let (d, truth) = rendered_thread("thread", "3");
+    let line: Vec<[f64; 3]> = truth["points_m"]
+        .as_array()
+        .expect("points")
+        .iter()
+        .map(vec3)
+        .collect();
+    let (start, swage) = (vec3(&truth["start_m"]), vec3(&truth["swage_m"]));
+    let (left, right, calib) = (
+        d.join("left.png"),
+        d.join("right.png"),
+        d.join("calib.toml"),
+    );
+    let start_arg = format!("--start={}", csv(start));
+    let swage_arg = format!("--swage={}", csv(swage));
+    let out = stitch(&[
+        "perceive",
+        "thread",
+        s(&left),
+        s(&right),
+        "--calib",
+        s(&calib),
+        &start_arg,
+        &swage_arg,
+    ]);
+    assert_eq!(out.status.code(), Some(0), "{}", text(&out.stderr));
+    let t: serde_json::Value = serde_json::from_slice(&out.stdout).expect("JSON");
+    let points: Vec<[f64; 3]> = t["points_m"]
+        .as_array()
+        .expect("points")
+        .iter()
+        .map(vec3)
+        .collect();
+    let sigmas = t["sigma_m"].as_array().expect("sigma");
+    assert_eq!(points.len(), sigmas.len());
+    let mut errors: Vec<f64> = points
+        .iter()
+        .map(|p| {
+            line.windows(2)
+                .map(|w| to_segment(*p, w[0], w[1]))
+                .fold(f64::INFINITY, f64::min)
+        })
+        .collect();
+    errors.sort_by(f64::total_cmp);
+    assert!(
+        errors[errors.len() / 2] < 0.001,
+        "median error {} m",
+        errors[errors.len() / 2]
+    );
+    let true_len = truth["length_m"].as_f64().expect("length");
+    let len = t["length_m"].as_f64().expect("length");
+    assert!(
+        (len - true_len).abs() < 0.2 * true_len,
+        "{len} m traced, {true_len} m true"
+    );
+    assert!(dist(points[0], start) < 0.003 && dist(points[points.len() - 1], swage) < 0.003);
+
+    // Told the thread is 8 cm aside of where it is: a typed failure (exit 6), as JSON.
+    let aside = |p: [f64; 3]| csv([p[0] + 0.08, p[1] + 0.08, p[2]]);
+    let out = stitch(&[
+        "perceive",
+        "thread",
+        s(&left),
+        s(&right),
+        "--calib",
+        s(&calib),
+        &format!("--start={}", aside(start)),
+        &format!("--swage={}", aside(swage)),
+    ]);
+    assert_eq!(out.status.code(), Some(6), "{}", text(&out.stdout));
+    let f: serde_json::Value = serde_json::from_slice(&out.stdout).expect("JSON");
+    let kind = f["failure"].as_str().expect("failure kind");
+    assert!(
+        ["no_thread", "thread_hidden", "thread_untraced"].contains(&kind),
+        "{kind}: {}",
+        f["message"]
+    );
+
+    // A swage that is not three numbers is refused with the reason.
+    let out = stitch(&[
+        "perceive",
+        "thread",
+        s(&left),
+        s(&right),
+        "--calib",
+        s(&calib),
+        "--swage=1,2",
+    ]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(text(&out.stderr).contains("x,y,z"), "{}", text(&out.stderr));
+}
