@@ -115,6 +115,17 @@ fn a_when_on_each_kind_of_condition_takes_both_branches_on_the_mock() {
             "all([needle_seen(), throw_number() == 1])",
             "any([not(needle_seen()), throw_number() > 1])",
         ),
+        // The thread, traced now: before the first stitch it runs from its tail to the
+        // swage, held in the right jaw; the left jaw is at its home, centimetres away.
+        ("thread_free() > cm(5)", "thread_free() > m(5)"),
+        (
+            "thread_clearance(left_jaw()) > mm(5)",
+            "thread_clearance(left_jaw()) > m(1)",
+        ),
+        (
+            "thread_wrap(left_jaw()) < deg(360)",
+            "thread_wrap(left_jaw()) >= deg(360)",
+        ),
     ];
     // The tip is a half circle (24 mm across for the 12 mm needle) from the swage the jaw
     // holds: more than a centimetre from the jaw.
@@ -142,8 +153,27 @@ fn a_when_on_each_kind_of_condition_takes_both_branches_on_the_mock() {
                     Entry::Condition { observation, .. } => Some(observation.needle.is_some()),
                     _ => None,
                 });
-            let needs = cond.contains("needle");
+            let traced = cond.contains("thread_") && !cond.contains("thread_left");
+            let needs = cond.contains("needle") || traced;
             assert_eq!(needle, Some(needs), "{cond}");
+            // ...and the trace where the thread was read, the free length a thread's.
+            let thread = report
+                .journal
+                .records()
+                .iter()
+                .find_map(|r| match &r.entry {
+                    Entry::Condition { observation, .. } => Some(observation.thread.clone()),
+                    _ => None,
+                })
+                .flatten();
+            assert_eq!(thread.is_some(), traced, "{cond}: {thread:?}");
+            if let Some(t) = thread {
+                assert!(
+                    t.points.len() >= 2 && t.points.len() == t.sigma_m.len(),
+                    "{t:?}"
+                );
+                assert!((0.05..1.0).contains(&t.length_m), "{t:?}");
+            }
         }
     }
 }
@@ -436,4 +466,94 @@ fn a_condition_the_robot_could_not_observe_is_not_decided_and_fails_in_the_needl
         }
         other => panic!("{other:?}"),
     }
+}
+
+/// Distance from `p` to a polyline, m.
+fn to_polyline(p: &stitch_robot::Point, line: &[stitch_robot::Point]) -> f64 {
+    line.windows(2)
+        .map(|w| {
+            let ab = w[1] - w[0];
+            let t = ((p - w[0]).dot(&ab) / ab.norm_squared().max(1e-18)).clamp(0.0, 1.0);
+            (p - (w[0] + ab * t)).norm()
+        })
+        .fold(f64::INFINITY, f64::min)
+}
+
+#[test]
+fn a_thread_condition_with_the_pipeline_is_decided_on_a_trace_of_the_rendered_thread() {
+    // A throw, then a condition on the thread from that stitch's exit to the swage (the
+    // needle back in the right jaw after the handover); both branches only look, so the
+    // world at the end is the world the trace was made of.
+    let source = "let t = suture(wound()[0], [\n\
+           insert(), sweep(), extract(), cinch(), handover(),\n\
+           when(all([thread_free() > cm(2), thread_clearance(left_jaw()) > mm(1)]),\n\
+                [estimate_needle()]).otherwise([estimate_needle()]),\n\
+         ]);\n\
+         mission(#{ name: \"traced\", throws: [t] })";
+    let plan = load(source);
+    let clock = SimClock::new();
+    let perception = stitch_primitives::MockPerception::Pipeline(Box::default(), None);
+    let (mut primitives, world) =
+        stitch_primitives::mock_primitives_with(&scene(), perception, 1, clock.clone())
+            .expect("mock");
+    let mut supervisor = ScriptedSupervisor::default();
+    let report = Runner::new(
+        Arc::new(plan),
+        &mut primitives,
+        &mut supervisor,
+        Arc::new(clock),
+        Some(1),
+    )
+    .run();
+    assert_eq!(
+        report.outcome,
+        RunOutcome::Completed,
+        "{:?}",
+        report.outcome
+    );
+    let (value, observation) = report
+        .journal
+        .records()
+        .iter()
+        .find_map(|r| match &r.entry {
+            Entry::Condition {
+                value, observation, ..
+            } => Some((*value, observation.clone())),
+            _ => None,
+        })
+        .expect("a condition decided");
+    let trace = observation
+        .thread
+        .unwrap_or_else(|| panic!("traced: {:?}", observation.thread_failure));
+    let truth: Vec<stitch_robot::Point> = world.thread_in_view().iter().map(|(p, _)| *p).collect();
+    let true_len: f64 = truth.windows(2).map(|w| (w[1] - w[0]).norm()).sum();
+    // Where the thread runs along the image rows its depth is bridged, not measured, and the
+    // trace says so: every point within its 2σ of the true thread (and a millimetre of
+    // rounding), the ends where they are, the length within 10 %.
+    for (p, s) in trace.points.iter().zip(&trace.sigma_m) {
+        let e = to_polyline(p, &truth);
+        assert!(e <= 2.0 * s + 0.001, "{p:?}: {e} m off, σ {s} m");
+    }
+    assert!((trace.points[0] - truth[0]).norm() < 0.002);
+    assert!((trace.points[trace.points.len() - 1] - truth[truth.len() - 1]).norm() < 0.002);
+    assert!(
+        (trace.length_m - true_len).abs() < 0.1 * true_len,
+        "{} m traced, {true_len} m true",
+        trace.length_m
+    );
+    // Decided on that trace: the free length is the trace's, the clearance the left jaw's.
+    let left = observation.left_jaw.expect("left jaw measured");
+    let clearance = trace
+        .points
+        .iter()
+        .zip(&trace.sigma_m)
+        .map(|(p, s)| (p - left).norm() - 2.0 * s)
+        .fold(f64::INFINITY, f64::min);
+    // The left jaw waits at its home, well clear of the thread on the pad: the condition
+    // holds, and not by a hair.
+    assert!(
+        value && trace.length_m > 0.02 && clearance > 0.006,
+        "{value}: {} m free, {clearance} m clear",
+        trace.length_m
+    );
 }

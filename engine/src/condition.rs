@@ -145,6 +145,20 @@ pub enum Quantity {
     NeedleAge,
     /// Thread left: the mission's `thread_length` less what the cinches pulled, m.
     ThreadLeft,
+    /// How far the traced thread stays from a target, less twice its uncertainty where it
+    /// comes nearest, m (negative: it may touch).
+    ThreadClearance {
+        /// From what.
+        from: Target,
+    },
+    /// The traced thread's length from where it leaves the tissue to the swage, m.
+    ThreadFree,
+    /// How far the traced thread winds round the vertical through a target (its part
+    /// within `WRAP_RADIUS_M` of it), rad: a full loop is 2π.
+    ThreadWrap {
+        /// Round what.
+        round: Target,
+    },
     /// The throw under way, 1-based.
     ThrowNumber,
     /// Interventions the robot may still ask for.
@@ -159,7 +173,11 @@ impl Quantity {
         match self {
             Quantity::NeedleConfidence => Unit::Number,
             Quantity::NeedleNormalAngle { .. } => Unit::Angle,
-            Quantity::NeedleEndDistance { .. } | Quantity::ThreadLeft => Unit::Length,
+            Quantity::NeedleEndDistance { .. }
+            | Quantity::ThreadLeft
+            | Quantity::ThreadClearance { .. }
+            | Quantity::ThreadFree => Unit::Length,
+            Quantity::ThreadWrap { .. } => Unit::Angle,
             Quantity::NeedleAge => Unit::Time,
             Quantity::ThrowNumber | Quantity::InterventionsLeft | Quantity::RetriesUsed => {
                 Unit::Count
@@ -167,7 +185,8 @@ impl Quantity {
         }
     }
 
-    /// Whether it is read from a needle query (a perception observation).
+    /// Whether it is read from a needle query (a perception observation). A thread trace
+    /// needs one too: it ends at the estimate's swage.
     pub fn needs_needle(&self) -> bool {
         matches!(
             self,
@@ -175,6 +194,14 @@ impl Quantity {
                 | Quantity::NeedleNormalAngle { .. }
                 | Quantity::NeedleEndDistance { .. }
                 | Quantity::NeedleAge
+        ) || self.needs_thread()
+    }
+
+    /// Whether it is read from a thread trace.
+    pub fn needs_thread(&self) -> bool {
+        matches!(
+            self,
+            Quantity::ThreadClearance { .. } | Quantity::ThreadFree | Quantity::ThreadWrap { .. }
         )
     }
 
@@ -194,6 +221,9 @@ impl Quantity {
             ),
             Quantity::NeedleAge => "needle_age()".into(),
             Quantity::ThreadLeft => "thread_left()".into(),
+            Quantity::ThreadClearance { from } => format!("thread_clearance({from})"),
+            Quantity::ThreadFree => "thread_free()".into(),
+            Quantity::ThreadWrap { round } => format!("thread_wrap({round})"),
             Quantity::ThrowNumber => "throw_number()".into(),
             Quantity::InterventionsLeft => "interventions_left()".into(),
             Quantity::RetriesUsed => "retries_used()".into(),
@@ -285,6 +315,16 @@ impl Condition {
         }
     }
 
+    /// Whether deciding it needs a thread trace.
+    pub fn needs_thread(&self) -> bool {
+        match self {
+            Condition::NeedleSeen => false,
+            Condition::Compare { quantity, .. } => quantity.needs_thread(),
+            Condition::All { of } | Condition::Any { of } => of.iter().any(Self::needs_thread),
+            Condition::Not { of } => of.needs_thread(),
+        }
+    }
+
     /// Whether deciding it needs a needle query.
     pub fn needs_needle(&self) -> bool {
         match self {
@@ -365,6 +405,65 @@ fn mission_value(q: &Quantity, m: &MissionFacts) -> Option<Option<f64>> {
     })
 }
 
+/// Where a target is now: a point, or a jaw's measured tip (`None` if its arm did not say).
+fn target(to: &Target, f: &Facts<'_>) -> Option<stitch_robot::Point> {
+    match to {
+        Target::Point(p) => Some(stitch_robot::Point::new(p[0], p[1], p[2])),
+        Target::RightJaw => f.observation.right_jaw,
+        Target::LeftJaw => f.observation.left_jaw,
+    }
+}
+
+/// The part of the thread within this distance of a target is what winds round it, m.
+pub const WRAP_RADIUS_M: f64 = 0.03;
+
+/// The least distance from `at` to the polyline less twice the uncertainty there, m.
+fn clearance(
+    points: &[stitch_robot::Point],
+    sigma_m: &[f64],
+    at: &stitch_robot::Point,
+) -> Option<f64> {
+    let sigma = |i: usize| sigma_m.get(i).copied().unwrap_or(0.0);
+    let mut best: Option<f64> = None;
+    let mut keep = |d: f64| best = Some(best.map_or(d, |b: f64| b.min(d)));
+    if let [only] = points {
+        keep((only - at).norm() - 2.0 * sigma(0));
+    }
+    for (i, w) in points.windows(2).enumerate() {
+        let ab = w[1] - w[0];
+        let l2 = ab.norm_squared();
+        let s = if l2 > 0.0 {
+            ((at - w[0]).dot(&ab) / l2).clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
+        let d = (w[0] + ab * s - at).norm();
+        keep(d - 2.0 * (sigma(i) * (1.0 - s) + sigma(i + 1) * s));
+    }
+    best
+}
+
+/// How far the polyline winds round the vertical (robot z) through `at`, over its steps
+/// with both ends within `WRAP_RADIUS_M` of it, rad (absolute).
+fn wrap(points: &[stitch_robot::Point], at: &stitch_robot::Point) -> f64 {
+    let near = |p: &stitch_robot::Point| (p - at).norm() <= WRAP_RADIUS_M;
+    let angle = |p: &stitch_robot::Point| (p.y - at.y).atan2(p.x - at.x);
+    let mut total = 0.0;
+    for w in points.windows(2) {
+        if near(&w[0]) && near(&w[1]) {
+            let mut d = angle(&w[1]) - angle(&w[0]);
+            while d > std::f64::consts::PI {
+                d -= std::f64::consts::TAU;
+            }
+            while d < -std::f64::consts::PI {
+                d += std::f64::consts::TAU;
+            }
+            total += d;
+        }
+    }
+    total.abs()
+}
+
 fn value(q: &Quantity, f: &Facts<'_>) -> Option<f64> {
     if let Some(v) = mission_value(q, &f.mission) {
         return v;
@@ -383,12 +482,17 @@ fn value(q: &Quantity, f: &Facts<'_>) -> Option<f64> {
                 End::Tip => n.tip,
                 End::Swage => n.swage,
             };
-            let at = match to {
-                Target::Point(p) => stitch_robot::Point::new(p[0], p[1], p[2]),
-                Target::RightJaw => f.observation.right_jaw?,
-                Target::LeftJaw => f.observation.left_jaw?,
-            };
-            Some((from - at).norm())
+            Some((from - target(to, f)?).norm())
+        }
+        Quantity::ThreadFree => f.observation.thread.as_ref().map(|t| t.length_m),
+        Quantity::ThreadClearance { from } => {
+            let t = f.observation.thread.as_ref()?;
+            let at = target(from, f)?;
+            clearance(&t.points, &t.sigma_m, &at)
+        }
+        Quantity::ThreadWrap { round } => {
+            let t = f.observation.thread.as_ref()?;
+            Some(wrap(&t.points, &target(round, f)?))
         }
         _ => None,
     }
@@ -504,6 +608,97 @@ mod tests {
             "never seen: infinitely old"
         );
         assert!(!Condition::NeedleSeen.eval(&f));
+    }
+
+    /// A thread from (0, -4, 0) cm to (0, 4, 0) cm, or a loop of radius 1 cm round the
+    /// origin (`turns` times round, then off radially), each point ±`sigma`.
+    fn thread(loop_turns: Option<f64>, sigma: f64) -> Observation {
+        let points: Vec<Point> = match loop_turns {
+            None => (0..=16)
+                .map(|k| Point::new(0.0, -0.04 + 0.005 * f64::from(k), 0.0))
+                .collect(),
+            Some(turns) => {
+                let n = (turns * 36.0).round() as i32;
+                (0..=n)
+                    .map(|k| {
+                        let a = std::f64::consts::TAU * f64::from(k) / 36.0;
+                        Point::new(0.01 * a.cos(), 0.01 * a.sin(), 0.002 * f64::from(k) / 36.0)
+                    })
+                    .chain((1..=8).map(|k| {
+                        // Off radially from where the loop ends: no more winding.
+                        let a = std::f64::consts::TAU * turns;
+                        let r = 0.01 + 0.005 * f64::from(k);
+                        Point::new(r * a.cos(), r * a.sin(), 0.003)
+                    }))
+                    .collect()
+            }
+        };
+        let length_m = points.windows(2).map(|w| (w[1] - w[0]).norm()).sum();
+        Observation {
+            thread: Some(stitch_primitives::ThreadSeen {
+                sigma_m: vec![sigma; points.len()],
+                points,
+                length_m,
+                seen_share: 1.0,
+            }),
+            left_jaw: Some(Point::new(0.02, 0.0, 0.0)),
+            right_jaw: Some(Point::origin()),
+            ..seen()
+        }
+    }
+
+    #[test]
+    fn thread_quantities_read_the_trace_and_are_false_without_one() {
+        let left = Target::LeftJaw;
+        let clear = |b: f64| cmp(Quantity::ThreadClearance { from: left }, Cmp::Gt, b);
+        // The straight thread passes 2 cm from the left jaw: 2 cm less 2σ.
+        let obs = thread(None, 0.001);
+        let f = facts(&obs);
+        assert!(clear(0.017).eval(&f) && !clear(0.019).eval(&f));
+        // Less sure, less clear.
+        let unsure = thread(None, 0.004);
+        assert!(!clear(0.013).eval(&facts(&unsure)) && clear(0.011).eval(&facts(&unsure)));
+        assert!(cmp(Quantity::ThreadFree, Cmp::Gt, 0.079).eval(&f));
+        assert!(!cmp(Quantity::ThreadFree, Cmp::Gt, 0.081).eval(&f));
+        // A straight thread past the origin turns half round it; a loop once and a quarter
+        // round it, 450°.
+        let wrap = |q: f64, o: &Observation| {
+            cmp(
+                Quantity::ThreadWrap {
+                    round: Target::RightJaw,
+                },
+                Cmp::Ge,
+                q.to_radians(),
+            )
+            .eval(&facts(o))
+        };
+        assert!(wrap(170.0, &obs) && !wrap(190.0, &obs));
+        let looped = thread(Some(1.25), 0.001);
+        assert!(wrap(440.0, &looped) && !wrap(460.0, &looped));
+        // A thread more than 3 cm off does not wind round the point at all.
+        let far = cmp(
+            Quantity::ThreadWrap {
+                round: Target::Point([0.2, 0.0, 0.0]),
+            },
+            Cmp::Gt,
+            0.0,
+        );
+        assert!(!far.eval(&facts(&looped)));
+        // No trace, no value: every comparison false.
+        let none = seen();
+        for q in [
+            Quantity::ThreadFree,
+            Quantity::ThreadClearance { from: left },
+            Quantity::ThreadWrap { round: left },
+        ] {
+            assert!(q.needs_thread() && q.needs_needle());
+            assert!(!cmp(q, Cmp::Ge, -1e9).eval(&facts(&none)), "{q:?}");
+            assert!(!cmp(q, Cmp::Lt, 1e9).eval(&facts(&none)), "{q:?}");
+        }
+        assert_eq!(
+            clear(0.005).to_string(),
+            "thread_clearance(left_jaw()) > mm(5)"
+        );
     }
 
     #[test]

@@ -335,6 +335,7 @@ impl<'a> Runner<'a> {
             throw: c.throw,
             point: &throw.point,
             needle: cond.needs_needle(),
+            thread: cond.needs_thread(),
             needle_at,
         });
         let now = self.clock.now();

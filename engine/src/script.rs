@@ -174,6 +174,18 @@ pub const API: &[(&str, &str)] = &[
         "thread_left() → the mission's thread_length less what the cinches pulled, compare with cm(..)",
     ),
     (
+        "thread_clearance",
+        "thread_clearance(target) → a thread trace made now (from the last exit to the needle's swage): how far it stays from a target (right_jaw(), left_jaw(), a point) less twice its uncertainty, compare with mm(..)",
+    ),
+    (
+        "thread_free",
+        "thread_free() → a thread trace made now: its length from the last exit to the needle's swage, compare with cm(..)",
+    ),
+    (
+        "thread_wrap",
+        "thread_wrap(target) → a thread trace made now: how far its part within 3 cm of a target winds round the vertical through it, compare with deg(..) (a loop: deg(360))",
+    ),
+    (
         "throw_number",
         "throw_number() → the throw under way, 1-based, compare with a whole number",
     ),
@@ -879,6 +891,13 @@ fn register_conditions(engine: &mut rhai::Engine) {
     observable!("needle_confidence", Q::NeedleConfidence);
     observable!("needle_age", Q::NeedleAge);
     observable!("thread_left", Q::ThreadLeft);
+    observable!("thread_free", Q::ThreadFree);
+    engine.register_fn("thread_clearance", |t: Target| {
+        Observable(Q::ThreadClearance { from: t })
+    });
+    engine.register_fn("thread_wrap", |t: Target| {
+        Observable(Q::ThreadWrap { round: t })
+    });
     observable!("throw_number", Q::ThrowNumber);
     observable!("interventions_left", Q::InterventionsLeft);
     observable!("retries_used", Q::RetriesUsed);

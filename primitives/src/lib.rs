@@ -61,6 +61,9 @@ pub struct ObserveRequest<'a> {
     pub point: &'a WoundPoint,
     /// Whether to run a needle query (one estimator cycle) now.
     pub needle: bool,
+    /// Whether to trace the thread now (from the last stitch's exit to the swage of the
+    /// needle query's estimate; a condition on the thread asks for both).
+    pub thread: bool,
     /// Where the plan has the needle.
     pub needle_at: NeedleAt,
 }
@@ -82,6 +85,50 @@ pub struct NeedleSeen {
     pub stamp_s: f64,
 }
 
+/// A thread trace as a condition reads it (and the journal keeps it), robot frame.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ThreadSeen {
+    /// Points along the thread from where it leaves the tissue (or its tail) to the swage,
+    /// about every 5 mm, m.
+    pub points: Vec<Point>,
+    /// Each point's uncertainty (its expected distance from the truth), m.
+    pub sigma_m: Vec<f64>,
+    /// The traced length, m.
+    pub length_m: f64,
+    /// The share of it the camera saw (the rest bridged behind a jaw or the needle).
+    pub seen_share: f64,
+}
+
+impl ThreadSeen {
+    /// A trace kept at points at least `step_m` apart (the first and last always).
+    pub fn from_trace(
+        points: &[Point],
+        sigma_m: &[f64],
+        length_m: f64,
+        seen_share: f64,
+        step_m: f64,
+    ) -> Self {
+        let mut out = ThreadSeen {
+            points: Vec::new(),
+            sigma_m: Vec::new(),
+            length_m,
+            seen_share,
+        };
+        let mut since = f64::INFINITY;
+        for (i, (p, s)) in points.iter().zip(sigma_m).enumerate() {
+            if i > 0 {
+                since += (p - points[i - 1]).norm();
+            }
+            if since >= step_m || i + 1 == points.len() {
+                out.points.push(*p);
+                out.sigma_m.push(*s);
+                since = 0.0;
+            }
+        }
+        out
+    }
+}
+
 /// What the robot could tell when a condition was decided. Only what its sensors give: a
 /// needle estimate and the arms' measured poses.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -96,6 +143,12 @@ pub struct Observation {
     /// Why this query saw no needle (a typed perception failure), if it ran and saw none.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub needle_failure: Option<String>,
+    /// The thread as traced now, if asked and traced.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub thread: Option<ThreadSeen>,
+    /// Why the thread was not traced (a typed perception failure), if asked.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub thread_failure: Option<String>,
     /// The right jaw's tip, as PSM1 measures it.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub right_jaw: Option<Point>,

@@ -148,9 +148,13 @@ impl NeedleEstimator for ModelEstimator {
                 _ => hidden.push([from, to]),
             }
         }
+        // The length from the links themselves, 2 % off (the noisy points' own length would
+        // be a sixth too long: independent noise on 2 mm links lengthens each).
+        let true_length: f64 = links.windows(2).map(|w| (w[1].0 - w[0].0).norm()).sum();
+        let length_m = true_length * (1.0 + MODEL_THREAD_LENGTH_SHARE * normal());
         Ok(stitch_perception::ThreadTrace {
             sigma_m: vec![s * 3f64.sqrt(); points.len()],
-            length_m: arc.last().copied().unwrap_or(0.0),
+            length_m,
             points,
             hidden,
             seen_share,
@@ -159,6 +163,9 @@ impl NeedleEstimator for ModelEstimator {
         })
     }
 }
+
+/// The thread tracer model's length error, as a share of the length (one standard deviation).
+pub const MODEL_THREAD_LENGTH_SHARE: f64 = 0.02;
 
 /// The thread tracer model's noise per axis (the stereo tracer's median error on rendered
 /// pairs is about 0.1 mm, its 90th percentile a few millimetres: docs/perception.md), m.

@@ -11,7 +11,7 @@
 use crate::{
     CinchParams, Control, CorrectParams, ExtractParams, Failure, FailureKind, HandoverParams,
     InsertParams, Measurements, NeedleAt, NeedleSeen, Observation, ObserveRequest, PrimitiveError,
-    Primitives, StepControl, StepKind, StepOutcome, StepRequest, SweepParams,
+    Primitives, StepControl, StepKind, StepOutcome, StepRequest, SweepParams, ThreadSeen,
 };
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
@@ -880,8 +880,8 @@ impl RobotPrimitives {
 
     /// Trace the free thread: the swage from a needle estimate, the other end where the last
     /// stitch left the thread. A trace that cannot be made (the thread hidden, not found) is
-    /// a perception dropout, retried as the step's `retries` say; a failing camera or model
-    /// is a fault.
+    /// a perception dropout, retried as the step's `retries` say; a failing camera or model,
+    /// or a perception with no tracer, is a fault.
     fn track_thread(&mut self, c: &mut dyn StepControl) -> Step<stitch_perception::ThreadTrace> {
         let needle = self.estimate(c, None)?;
         let (_, _, _, swage) = needle.features(&self.rig.needle);
@@ -896,11 +896,13 @@ impl RobotPrimitives {
                 self.last_trace = Some(t.clone());
                 Ok(t)
             }
-            Err(e @ (PerceptionError::Camera { .. } | PerceptionError::Model { .. })) => {
-                Err(failed(FailureKind::ArmFault {
-                    message: format!("perception: {e}"),
-                }))
-            }
+            Err(
+                e @ (PerceptionError::Camera { .. }
+                | PerceptionError::Model { .. }
+                | PerceptionError::Config { .. }),
+            ) => Err(failed(FailureKind::ArmFault {
+                message: format!("perception: {e}"),
+            })),
             Err(e) => {
                 self.unseen.push(format!("thread: {e}"));
                 Err(failed(FailureKind::PerceptionDropout))
@@ -1022,6 +1024,9 @@ impl Primitives for RobotPrimitives {
                 }
             }
         }
+        if req.thread {
+            self.observe_thread(&mut obs);
+        }
         obs.needle = self.last_estimate.as_ref().map(|e| {
             let (center, normal, tip, swage) = e.features(&self.rig.needle);
             NeedleSeen {
@@ -1038,6 +1043,52 @@ impl Primitives for RobotPrimitives {
 
     fn hold_all(&mut self) -> Result<(), PrimitiveError> {
         hold_both(&*self.rig.right, &*self.rig.left)
+    }
+}
+
+impl RobotPrimitives {
+    /// A condition's thread trace: from the last stitch's exit to the swage of the needle
+    /// query just made. Not traced (with the reason) when that query did not see the needle.
+    fn observe_thread(&mut self, obs: &mut Observation) {
+        let swage = match (&self.last_estimate, obs.needle_now) {
+            (Some(e), true) => e.features(&self.rig.needle).3,
+            _ => {
+                obs.thread_failure = Some(
+                    "not traced: the needle query did not see the needle, and the trace ends \
+                     at its swage"
+                        .into(),
+                );
+                return;
+            }
+        };
+        let hint = stitch_perception::ThreadHint {
+            start: self.thread_from,
+            swage,
+            length_m: None,
+        };
+        match self.rig.estimator.trace_thread(&hint) {
+            Ok(t) => {
+                obs.thread = Some(ThreadSeen::from_trace(
+                    &t.points,
+                    &t.sigma_m,
+                    t.length_m,
+                    t.seen_share,
+                    0.005,
+                ));
+                self.last_trace = Some(t);
+            }
+            // A robot that cannot trace (a failing camera or model, a perception without a
+            // tracer) has not looked: a fault, not a thread out of sight.
+            Err(
+                e @ (PerceptionError::Camera { .. }
+                | PerceptionError::Model { .. }
+                | PerceptionError::Config { .. }),
+            ) => {
+                obs.faults.push(format!("perception: {e}"));
+                obs.thread_failure = Some(e.to_string());
+            }
+            Err(e) => obs.thread_failure = Some(e.to_string()),
+        }
     }
 }
 
