@@ -7,7 +7,7 @@ use stitch_engine::{
     BranchRole, Entry, OutcomeSchedule, Plan, PlanLoader, Report, RunOutcome, Runner, ScriptLimits,
     ScriptedSupervisor, SupervisorCommand, load_plan_str,
 };
-use stitch_primitives::mock_primitives;
+use stitch_primitives::{MockPerception, mock_primitives_with};
 use stitch_robot::{SimClock, Wound};
 use stitch_sim::{SceneConfig, SensingConfig, ThreadConfig};
 
@@ -33,18 +33,30 @@ fn load(source: &str) -> Plan {
 /// Run `plan` on the mock dVRK (perfect sensing unless said), answering checkpoints with
 /// `answers`.
 fn on_mock(plan: &Plan, sensing: SensingConfig, answers: Vec<SupervisorCommand>) -> Report {
+    on_mock_with(plan, &scene(), MockPerception::Model(sensing), answers).0
+}
+
+/// Run `plan` on a mock dVRK of `scene` seeing through `perception`; the report and the world
+/// as the run left it.
+fn on_mock_with(
+    plan: &Plan,
+    scene: &SceneConfig,
+    perception: MockPerception,
+    answers: Vec<SupervisorCommand>,
+) -> (Report, stitch_sim::MockDvrk) {
     let clock = SimClock::new();
-    let (mut primitives, _world) =
-        mock_primitives(&scene(), sensing, 1, clock.clone()).expect("mock");
+    let (mut primitives, world) =
+        mock_primitives_with(scene, perception, 1, clock.clone()).expect("mock");
     let mut supervisor = ScriptedSupervisor::default().with_checkpoints(answers);
-    Runner::new(
+    let report = Runner::new(
         Arc::new(plan.clone()),
         &mut primitives,
         &mut supervisor,
         Arc::new(clock),
         Some(1),
     )
-    .run()
+    .run();
+    (report, world)
 }
 
 /// The conditions a run decided: (condition, value).
@@ -416,18 +428,12 @@ fn a_condition_the_robot_could_not_observe_is_not_decided_and_fails_in_the_needl
         kind: stitch_sim::FaultKind::StaleMeasurement,
         nth: 1,
     });
-    let clock = SimClock::new();
-    let (mut primitives, _world) =
-        mock_primitives(&scene, SensingConfig::perfect(), 1, clock.clone()).expect("mock");
-    let mut supervisor = ScriptedSupervisor::default();
-    let report = Runner::new(
-        Arc::new(plan),
-        &mut primitives,
-        &mut supervisor,
-        Arc::new(clock),
-        Some(1),
-    )
-    .run();
+    let (report, _) = on_mock_with(
+        &plan,
+        &scene,
+        MockPerception::Model(SensingConfig::perfect()),
+        vec![],
+    );
     let records = report.journal.records();
     let at = records
         .iter()
@@ -490,21 +496,8 @@ fn a_thread_condition_with_the_pipeline_is_decided_on_a_trace_of_the_rendered_th
                 [estimate_needle()]).otherwise([estimate_needle()]),\n\
          ]);\n\
          mission(#{ name: \"traced\", throws: [t] })";
-    let plan = load(source);
-    let clock = SimClock::new();
-    let perception = stitch_primitives::MockPerception::Pipeline(Box::default(), None);
-    let (mut primitives, world) =
-        stitch_primitives::mock_primitives_with(&scene(), perception, 1, clock.clone())
-            .expect("mock");
-    let mut supervisor = ScriptedSupervisor::default();
-    let report = Runner::new(
-        Arc::new(plan),
-        &mut primitives,
-        &mut supervisor,
-        Arc::new(clock),
-        Some(1),
-    )
-    .run();
+    let perception = MockPerception::Pipeline(Box::default(), None);
+    let (report, world) = on_mock_with(&load(source), &scene(), perception, vec![]);
     assert_eq!(
         report.outcome,
         RunOutcome::Completed,

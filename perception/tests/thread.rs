@@ -103,6 +103,23 @@ fn distance_to(p: &Point, line: &[Point]) -> f64 {
         .fold(f64::INFINITY, f64::min)
 }
 
+/// The tracer with its defaults and the colour segmenter.
+fn traced(
+    c: &StereoCalibration,
+    left: &RgbImage,
+    right: &RgbImage,
+    hint: &ThreadHint,
+) -> Result<stitch_perception::ThreadTrace, PerceptionError> {
+    trace(
+        &ThreadParams::default(),
+        &ColorSegmenter::default(),
+        c,
+        left,
+        right,
+        hint,
+    )
+}
+
 fn length(line: &[Point]) -> f64 {
     line.windows(2).map(|w| (w[1] - w[0]).norm()).sum()
 }
@@ -139,15 +156,7 @@ fn a_bowed_curve_is_traced_to_a_fraction_of_a_millimetre_and_its_length_to_a_few
             swage: b,
             length_m: None,
         };
-        let t = trace(
-            &ThreadParams::default(),
-            &ColorSegmenter::default(),
-            &c,
-            &left,
-            &right,
-            &hint,
-        )
-        .unwrap_or_else(|e| panic!("case {i}: {e}"));
+        let t = traced(&c, &left, &right, &hint).unwrap_or_else(|e| panic!("case {i}: {e}"));
         let mut errors: Vec<f64> = t.points.iter().map(|p| distance_to(p, &truth)).collect();
         errors.sort_by(f64::total_cmp);
         let median = errors[errors.len() / 2];
@@ -213,15 +222,7 @@ fn a_stretch_behind_a_box_is_reported_hidden_and_bridged() {
         swage: b,
         length_m: None,
     };
-    let t = trace(
-        &ThreadParams::default(),
-        &ColorSegmenter::default(),
-        &c,
-        &left,
-        &right,
-        &hint,
-    )
-    .expect("traced past the box");
+    let t = traced(&c, &left, &right, &hint).expect("traced past the box");
     assert_eq!(t.hidden.len(), 1, "{:?}", t.hidden);
     let [from, to] = t.hidden[0];
     let middle = t.length_m / 2.0;
@@ -277,14 +278,7 @@ fn a_thread_mostly_hidden_or_missing_fails_typed() {
     };
     let left = draw(&c, &truth, 0.0, cover(0.0), 5);
     let right = draw(&c, &truth, c.baseline_m, cover(c.baseline_m), 6);
-    match trace(
-        &ThreadParams::default(),
-        &ColorSegmenter::default(),
-        &c,
-        &left,
-        &right,
-        &hint,
-    ) {
+    match traced(&c, &left, &right, &hint) {
         Err(PerceptionError::ThreadHidden { seen_share }) => assert!(seen_share < 0.6),
         Err(PerceptionError::NoThread { .. }) => {}
         other => panic!("expected a hidden thread, got {other:?}"),
@@ -297,28 +291,14 @@ fn a_thread_mostly_hidden_or_missing_fails_typed() {
         None,
         7,
     );
-    match trace(
-        &ThreadParams::default(),
-        &ColorSegmenter::default(),
-        &c,
-        &empty,
-        &empty,
-        &hint,
-    ) {
+    match traced(&c, &empty, &empty, &hint) {
         Err(PerceptionError::NoThread { view }) => assert_eq!(view, "left"),
         other => panic!("expected no thread, got {other:?}"),
     }
     // Images of the wrong size are a configuration error, not a missing thread.
     let small = RgbImage::new(32, 32);
     assert!(matches!(
-        trace(
-            &ThreadParams::default(),
-            &ColorSegmenter::default(),
-            &c,
-            &small,
-            &small,
-            &hint
-        ),
+        traced(&c, &small, &small, &hint),
         Err(PerceptionError::Config { .. })
     ));
 }

@@ -635,26 +635,7 @@ impl Thread {
         swage: Point,
         side: Vector,
     ) -> Result<Self, SimError> {
-        config.validate()?;
-        let n = (config.length_m / config.segment_m).round() as usize + 1;
-        let mut t = Self {
-            config,
-            ground,
-            stitches: vec![],
-            free: Chain {
-                points: bowed(tail, swage, n, config.segment_m, side, &ground),
-                first_held: false,
-                last_held: true,
-                resting: (vec![], None),
-            },
-            open_loop: None,
-            loop_is_tail: true,
-            tissue_m: 0.0,
-            caught: false,
-            tangled: false,
-            short: false,
-            anchor: None,
-        };
+        let mut t = Self::laid(config, ground, tail, swage, side, None)?;
         t.settle(swage, &[]);
         Ok(t)
     }
@@ -673,30 +654,43 @@ impl Thread {
         tools: &[Capsule],
         settles: u32,
     ) -> Result<Self, SimError> {
+        let mut t = Self::laid(config, ground, from, swage, side, Some(from))?;
+        for _ in 0..settles.max(1) {
+            t.settle(swage, tools);
+        }
+        Ok(t)
+    }
+
+    /// `config.length_m` of thread laid from `from` to the swage, bowed to `side`, unsettled:
+    /// its first end free (a tail) or held where a stitch left it (`anchor`).
+    fn laid(
+        config: ThreadConfig,
+        ground: Ground,
+        from: Point,
+        swage: Point,
+        side: Vector,
+        anchor: Option<Point>,
+    ) -> Result<Self, SimError> {
         config.validate()?;
         let n = (config.length_m / config.segment_m).round() as usize + 1;
-        let mut t = Self {
+        Ok(Self {
             config,
             ground,
             stitches: vec![],
             free: Chain {
                 points: bowed(from, swage, n, config.segment_m, side, &ground),
-                first_held: true,
+                first_held: anchor.is_some(),
                 last_held: true,
                 resting: (vec![], None),
             },
             open_loop: None,
-            loop_is_tail: false,
+            loop_is_tail: anchor.is_none(),
             tissue_m: 0.0,
             caught: false,
             tangled: false,
             short: false,
-            anchor: Some(from),
-        };
-        for _ in 0..settles.max(1) {
-            t.settle(swage, tools);
-        }
-        Ok(t)
+            anchor,
+        })
     }
 
     /// Free thread on the needle's side of the suture line, m.
