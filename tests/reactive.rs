@@ -550,3 +550,90 @@ fn a_thread_condition_with_the_pipeline_is_decided_on_a_trace_of_the_rendered_th
         trace.length_m
     );
 }
+
+#[test]
+fn track_thread_traces_a_thread_in_view_and_fails_typed_on_one_hidden() {
+    let source = |retries: u32| {
+        format!(
+            "let t = suture(wound()[0], [\n\
+               track_thread(#{{ retries: {retries} }}),\n\
+               insert(), sweep(), extract(), cinch(), handover(),\n\
+             ]);\n\
+             mission(#{{ name: \"track\", throws: [t] }})"
+        )
+    };
+    // In view: traced, its length measured (the whole thread before the first stitch).
+    let (report, _) = on_mock_with(
+        &load(&source(1)),
+        &scene(),
+        MockPerception::Model(SensingConfig::perfect()),
+        vec![],
+    );
+    assert_eq!(report.outcome, RunOutcome::Completed);
+    let first = report
+        .journal
+        .records()
+        .iter()
+        .find_map(|r| match &r.entry {
+            Entry::StepEnd { outcome, .. } => Some(outcome.clone()),
+            _ => None,
+        });
+    let Some(stitch_primitives::StepOutcome::Succeeded { measured }) = first else {
+        panic!("track_thread: {first:?}");
+    };
+    let traced = measured.thread_left_m.expect("a length");
+    let whole = scene().thread.length_m;
+    assert!(
+        (traced - whole).abs() < 0.1 * whole,
+        "{traced} m of {whole} m"
+    );
+
+    // Hidden (most links within 20 cm of a tool, the most the mock allows): a perception
+    // dropout naming the typed failure, retried, then the thread class; the arms hold.
+    let mut hidden = scene();
+    hidden.thread.occlusion_radius_m = 0.2;
+    let (report, _) = on_mock_with(
+        &load(&source(1)),
+        &hidden,
+        MockPerception::Model(SensingConfig::perfect()),
+        vec![],
+    );
+    let ends: Vec<&stitch_primitives::StepOutcome> = report
+        .journal
+        .records()
+        .iter()
+        .filter_map(|r| match &r.entry {
+            Entry::StepEnd { outcome, .. } => Some(outcome),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(ends.len(), 2, "one try and one retry: {ends:?}");
+    for e in &ends {
+        let stitch_primitives::StepOutcome::Failed(f) = e else {
+            panic!("{e:?}");
+        };
+        assert_eq!(f.kind, stitch_primitives::FailureKind::PerceptionDropout);
+        assert!(
+            f.measured
+                .perception_failures
+                .iter()
+                .any(|m| m.starts_with("thread:") && m.contains("hidden")),
+            "{:?}",
+            f.measured.perception_failures
+        );
+    }
+    assert!(
+        report
+            .journal
+            .records()
+            .iter()
+            .any(|r| matches!(r.entry, Entry::Hold { .. })),
+        "the arms were held"
+    );
+    match &report.outcome {
+        RunOutcome::Failed { class, .. } => {
+            assert_eq!(class.code(), 'T', "thread management")
+        }
+        other => panic!("{other:?}"),
+    }
+}
