@@ -1,11 +1,13 @@
-//! The needle pipeline (`stitch perceive needle`) on any pair of images: PNG bytes decoded as
-//! `perceive` decodes a file, or raw pixels of a window of the mock's camera at full
-//! resolution, with or without a hint. An estimate or a typed failure, never a
-//! panic, and never an estimate that is not finite.
+//! The needle pipeline (`stitch perceive needle`) and the thread tracer (`stitch perceive
+//! thread`) on any pair of images: PNG bytes decoded as `perceive` decodes a file, or raw
+//! pixels of a window of the mock's camera at full resolution, with or without a hint. An
+//! estimate (a trace) or a typed failure, never a panic, and never one that is not finite.
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
+use stitch_perception::ColorSegmenter;
 use stitch_perception::pipeline::{JawHint, NeedleEnd, NeedleHint, NeedlePipeline, TissueHint};
+use stitch_perception::thread::{ThreadHint, ThreadParams, trace};
 use stitch_robot::{Needle, Point, RgbImage};
 use stitch_sim::CameraConfig;
 
@@ -39,7 +41,7 @@ fuzz_target!(|data: &[u8]| {
     .calibration();
     calibration.cx = f64::from(base.width) / 2.0 - f64::from(WINDOW.0);
     calibration.cy = f64::from(base.height) / 2.0 - f64::from(WINDOW.1);
-    let Ok(pipeline) = NeedlePipeline::classical(calibration, Needle::default()) else {
+    let Ok(pipeline) = NeedlePipeline::classical(calibration.clone(), Needle::default()) else {
         return;
     };
     let n = (w * h * 3) as usize;
@@ -78,5 +80,18 @@ fuzz_target!(|data: &[u8]| {
         let t = out.pose.translation.vector;
         assert!(t.iter().all(|v| v.is_finite()), "{:?}", out.pose);
         assert!(out.confidence.is_finite(), "{}", out.confidence);
+    }
+    // The thread from the holes' exit (or its tail) to a swage by the jaw.
+    let thread = ThreadHint {
+        start: (mode % 2 == 0).then(|| Point::new(0.025, 0.01, -0.115)),
+        swage: jaw,
+        length_m: (mode % 3 == 0).then_some(0.05),
+    };
+    let seg = ColorSegmenter::default();
+    if let Ok(t) = trace(&ThreadParams::default(), &seg, &calibration, &left, &right, &thread) {
+        assert!(t.length_m.is_finite() && t.points.len() == t.sigma_m.len());
+        for (p, s) in t.points.iter().zip(&t.sigma_m) {
+            assert!(p.coords.iter().all(|v| v.is_finite()) && s.is_finite(), "{p:?} {s}");
+        }
     }
 });
