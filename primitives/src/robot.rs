@@ -154,8 +154,6 @@ pub struct RobotPrimitives {
     /// Where the free thread leaves the suture line: the exit of the last stitch the needle
     /// was drawn out of (none before the first).
     thread_from: Option<Point>,
-    /// The latest thread trace.
-    last_trace: Option<stitch_perception::ThreadTrace>,
 }
 
 /// Why a step stops before its end: it failed (boxed: a failure carries its measurements), or
@@ -330,7 +328,6 @@ impl RobotPrimitives {
             corrected_grasp: None,
             last_point: None,
             thread_from: None,
-            last_trace: None,
             previous_point: None,
             last_estimate: None,
             left_end: NeedleEnd::Tip,
@@ -892,10 +889,7 @@ impl RobotPrimitives {
         };
         self.go_on(c)?;
         match self.rig.estimator.trace_thread(&hint) {
-            Ok(t) => {
-                self.last_trace = Some(t.clone());
-                Ok(t)
-            }
+            Ok(t) => Ok(t),
             Err(
                 e @ (PerceptionError::Camera { .. }
                 | PerceptionError::Model { .. }
@@ -1075,7 +1069,6 @@ impl RobotPrimitives {
                     t.seen_share,
                     0.005,
                 ));
-                self.last_trace = Some(t);
             }
             // A robot that cannot trace (a failing camera or model, a perception without a
             // tracer) has not looked: a fault, not a thread out of sight.
