@@ -94,13 +94,6 @@ impl ThreadTrace {
         }
         best
     }
-
-    /// Whether the thread stays at least `radius_m` from `p`, with `sigmas` of its
-    /// uncertainty as margin (2: about 95 % sure).
-    pub fn clear_of(&self, p: &Point, radius_m: f64, sigmas: f64) -> bool {
-        self.nearest(p)
-            .is_none_or(|(_, d, s)| d - sigmas * s >= radius_m)
-    }
 }
 
 /// The tracer's settings.
