@@ -198,7 +198,7 @@ pub fn render(out: &Path, seed: u64, sample: Option<usize>, set: EvalSet) -> any
 struct BenchRow {
     set: EvalSet,
     accuracy: ThreadAccuracy,
-    /// Over the traced pairs whose other tool was over the thread.
+    /// Over the pairs with another tool over the thread.
     occluded: ThreadAccuracy,
 }
 
@@ -250,6 +250,9 @@ pub fn bench(args: BenchThreadArgs) -> anyhow::Result<u8> {
             accuracy: eval::accuracy(&results),
             occluded: eval::accuracy(&occluded),
         });
+    }
+    if let Some(d) = &mut details {
+        d.flush()?;
     }
     let mut out = std::io::stdout().lock();
     if args.json {
