@@ -652,18 +652,19 @@ fn a_rendered_thread_on_disk_is_traced_near_its_truth_and_a_missing_one_fails_ty
         d.join("right.png"),
         d.join("calib.toml"),
     );
-    let start_arg = format!("--start={}", csv(start));
-    let swage_arg = format!("--swage={}", csv(swage));
-    let out = stitch(&[
-        "perceive",
-        "thread",
-        s(&left),
-        s(&right),
-        "--calib",
-        s(&calib),
-        &start_arg,
-        &swage_arg,
-    ]);
+    let trace = |start: [f64; 3], swage: [f64; 3]| {
+        stitch(&[
+            "perceive",
+            "thread",
+            s(&left),
+            s(&right),
+            "--calib",
+            s(&calib),
+            &format!("--start={}", csv(start)),
+            &format!("--swage={}", csv(swage)),
+        ])
+    };
+    let out = trace(start, swage);
     assert_eq!(out.status.code(), Some(0), "{}", text(&out.stderr));
     let t: serde_json::Value = serde_json::from_slice(&out.stdout).expect("JSON");
     let points: Vec<[f64; 3]> = t["points_m"]
@@ -697,17 +698,8 @@ fn a_rendered_thread_on_disk_is_traced_near_its_truth_and_a_missing_one_fails_ty
     assert!(dist(points[0], start) < 0.003 && dist(points[points.len() - 1], swage) < 0.003);
 
     // Told the thread is 8 cm aside of where it is: a typed failure (exit 6), as JSON.
-    let aside = |p: [f64; 3]| csv([p[0] + 0.08, p[1] + 0.08, p[2]]);
-    let out = stitch(&[
-        "perceive",
-        "thread",
-        s(&left),
-        s(&right),
-        "--calib",
-        s(&calib),
-        &format!("--start={}", aside(start)),
-        &format!("--swage={}", aside(swage)),
-    ]);
+    let aside = |p: [f64; 3]| [p[0] + 0.08, p[1] + 0.08, p[2]];
+    let out = trace(aside(start), aside(swage));
     assert_eq!(out.status.code(), Some(6), "{}", text(&out.stdout));
     let f: serde_json::Value = serde_json::from_slice(&out.stdout).expect("JSON");
     let kind = f["failure"].as_str().expect("failure kind");
