@@ -474,17 +474,6 @@ fn a_condition_the_robot_could_not_observe_is_not_decided_and_fails_in_the_needl
     }
 }
 
-/// Distance from `p` to a polyline, m.
-fn to_polyline(p: &stitch_robot::Point, line: &[stitch_robot::Point]) -> f64 {
-    line.windows(2)
-        .map(|w| {
-            let ab = w[1] - w[0];
-            let t = ((p - w[0]).dot(&ab) / ab.norm_squared().max(1e-18)).clamp(0.0, 1.0);
-            (p - (w[0] + ab * t)).norm()
-        })
-        .fold(f64::INFINITY, f64::min)
-}
-
 #[test]
 fn a_thread_condition_with_the_pipeline_is_decided_on_a_trace_of_the_rendered_thread() {
     // A throw, then a condition on the thread from that stitch's exit to the swage (the
@@ -524,7 +513,7 @@ fn a_thread_condition_with_the_pipeline_is_decided_on_a_trace_of_the_rendered_th
     // trace says so: every point within its 2σ of the true thread (and a millimetre of
     // rounding), the ends where they are, the length within 10 %.
     for (p, s) in trace.points.iter().zip(&trace.sigma_m) {
-        let e = to_polyline(p, &truth);
+        let e = stitch_robot::distance_to_polyline(p, &truth);
         assert!(e <= 2.0 * s + 0.001, "{p:?}: {e} m off, σ {s} m");
     }
     assert!((trace.points[0] - truth[0]).norm() < 0.002);

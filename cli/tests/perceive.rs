@@ -626,17 +626,6 @@ fn csv(v: [f64; 3]) -> String {
     v.map(|x| x.to_string()).join(",")
 }
 
-fn to_segment(p: [f64; 3], a: [f64; 3], b: [f64; 3]) -> f64 {
-    let ab = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
-    let l2 = ab.iter().map(|x| x * x).sum::<f64>();
-    let t = if l2 > 0.0 {
-        ((0..3).map(|i| (p[i] - a[i]) * ab[i]).sum::<f64>() / l2).clamp(0.0, 1.0)
-    } else {
-        0.0
-    };
-    dist(p, [0, 1, 2].map(|i| a[i] + t * ab[i]))
-}
-
 #[test]
 fn a_rendered_thread_on_disk_is_traced_near_its_truth_and_a_missing_one_fails_typed() {
     let (d, truth) = rendered_thread("thread", "3");
@@ -675,13 +664,11 @@ fn a_rendered_thread_on_disk_is_traced_near_its_truth_and_a_missing_one_fails_ty
         .collect();
     let sigmas = t["sigma_m"].as_array().expect("sigma");
     assert_eq!(points.len(), sigmas.len());
+    let point = |v: [f64; 3]| stitch_robot::Point::from(v);
+    let line: Vec<stitch_robot::Point> = line.into_iter().map(point).collect();
     let mut errors: Vec<f64> = points
         .iter()
-        .map(|p| {
-            line.windows(2)
-                .map(|w| to_segment(*p, w[0], w[1]))
-                .fold(f64::INFINITY, f64::min)
-        })
+        .map(|p| stitch_robot::distance_to_polyline(&point(*p), &line))
         .collect();
     errors.sort_by(f64::total_cmp);
     assert!(

@@ -430,15 +430,8 @@ fn clearance(
         keep((only - at).norm() - 2.0 * sigma(0));
     }
     for (i, w) in points.windows(2).enumerate() {
-        let ab = w[1] - w[0];
-        let l2 = ab.norm_squared();
-        let s = if l2 > 0.0 {
-            ((at - w[0]).dot(&ab) / l2).clamp(0.0, 1.0)
-        } else {
-            0.0
-        };
-        let d = (w[0] + ab * s - at).norm();
-        keep(d - 2.0 * (sigma(i) * (1.0 - s) + sigma(i + 1) * s));
+        let (q, s) = stitch_robot::nearest_on_segment(at, &w[0], &w[1]);
+        keep((q - at).norm() - 2.0 * (sigma(i) * (1.0 - s) + sigma(i + 1) * s));
     }
     best
 }

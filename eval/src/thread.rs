@@ -19,7 +19,9 @@ use std::time::Instant;
 use stitch_perception::PerceptionError;
 use stitch_perception::segment::Segmenter;
 use stitch_perception::thread::{ThreadHint, ThreadParams, ThreadTrace, trace};
-use stitch_robot::{Needle, Point, Pose, RgbImage, StereoCalibration, Vector};
+use stitch_robot::{
+    Needle, Point, Pose, RgbImage, StereoCalibration, Vector, distance_to_polyline,
+};
 use stitch_sim::{
     Ground, Phantom, SceneView, StereoRenderer, Thread, ThreadConfig, ToolView,
     grasp_in_needle_frame, tool_capsules,
@@ -364,24 +366,6 @@ pub fn run_independent(
             evaluate(params, segmenter, &s.calibration, &l, &r, t).1
         })
         .collect()
-}
-
-/// The distance from `p` to a polyline, m.
-pub fn distance_to_polyline(p: &Point, line: &[Point]) -> f64 {
-    if line.len() == 1 {
-        return (p - line[0]).norm();
-    }
-    line.windows(2)
-        .map(|w| {
-            let ab = w[1] - w[0];
-            let t = if ab.norm_squared() > 0.0 {
-                ((p - w[0]).dot(&ab) / ab.norm_squared()).clamp(0.0, 1.0)
-            } else {
-                0.0
-            };
-            (p - (w[0] + ab * t)).norm()
-        })
-        .fold(f64::INFINITY, f64::min)
 }
 
 /// Points every `step` along a polyline, m.

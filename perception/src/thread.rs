@@ -74,25 +74,9 @@ pub struct ThreadTrace {
 impl ThreadTrace {
     /// The trace's point nearest `p`, its distance from `p` and its uncertainty, m.
     pub fn nearest(&self, p: &Point) -> Option<(Point, f64, f64)> {
-        let mut best: Option<(Point, f64, f64)> = None;
-        for (w, s) in self.points.windows(2).zip(self.sigma_m.windows(2)) {
-            let (a, b) = (w[0], w[1]);
-            let ab = b - a;
-            let t = if ab.norm_squared() > 0.0 {
-                ((p - a).dot(&ab) / ab.norm_squared()).clamp(0.0, 1.0)
-            } else {
-                0.0
-            };
-            let q = a + ab * t;
-            let d = (p - q).norm();
-            if best.is_none_or(|(_, bd, _)| d < bd) {
-                best = Some((q, d, s[0] + (s[1] - s[0]) * t));
-            }
-        }
-        if self.points.len() == 1 {
-            best = Some((self.points[0], (p - self.points[0]).norm(), self.sigma_m[0]));
-        }
-        best
+        let (q, i, t) = stitch_robot::nearest_on_polyline(p, &self.points)?;
+        let s = |k: usize| self.sigma_m.get(k).copied().unwrap_or(0.0);
+        Some((q, (p - q).norm(), s(i) + (s(i + 1) - s(i)) * t))
     }
 }
 

@@ -3,7 +3,7 @@
 
 use stitch_perception::thread::{ThreadHint, ThreadParams, trace};
 use stitch_perception::{ColorSegmenter, PerceptionError};
-use stitch_robot::{Point, Pose, RgbImage, StereoCalibration};
+use stitch_robot::{Point, Pose, RgbImage, StereoCalibration, distance_to_polyline};
 
 const W: u32 = 640;
 const H: u32 = 480;
@@ -93,16 +93,6 @@ fn draw(
     img
 }
 
-fn distance_to(p: &Point, line: &[Point]) -> f64 {
-    line.windows(2)
-        .map(|w| {
-            let ab = w[1] - w[0];
-            let t = ((p - w[0]).dot(&ab) / ab.norm_squared()).clamp(0.0, 1.0);
-            (p - (w[0] + ab * t)).norm()
-        })
-        .fold(f64::INFINITY, f64::min)
-}
-
 /// The tracer with its defaults and the colour segmenter.
 fn traced(
     c: &StereoCalibration,
@@ -157,7 +147,11 @@ fn a_bowed_curve_is_traced_to_a_fraction_of_a_millimetre_and_its_length_to_a_few
             length_m: None,
         };
         let t = traced(&c, &left, &right, &hint).unwrap_or_else(|e| panic!("case {i}: {e}"));
-        let mut errors: Vec<f64> = t.points.iter().map(|p| distance_to(p, &truth)).collect();
+        let mut errors: Vec<f64> = t
+            .points
+            .iter()
+            .map(|p| distance_to_polyline(p, &truth))
+            .collect();
         errors.sort_by(f64::total_cmp);
         let median = errors[errors.len() / 2];
         let worst = errors[errors.len() - 1];

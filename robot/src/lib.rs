@@ -6,6 +6,7 @@ mod clock;
 mod error;
 mod jaw;
 mod needle;
+mod polyline;
 mod safety;
 mod wound;
 
@@ -20,6 +21,7 @@ pub use clock::{Clock, SimClock, WallClock};
 pub use error::RobotError;
 pub use jaw::{DummyJaw, JAW_CLOSED_RAD, JAW_OPEN_RAD, Jaw};
 pub use needle::{NEEDLE_RADIUS_M, NEEDLE_WIRE_DIAMETER_M, Needle, NeedleGeometry};
+pub use polyline::{distance_to_polyline, nearest_on_polyline, nearest_on_segment};
 pub use safety::{LimitPolicy, SpeedLimit, Workspace, WorkspaceLimit, finite_pose};
 pub use wound::{Wound, WoundPoint, WoundSpec};
 

@@ -208,13 +208,7 @@ pub struct Capsule {
 impl Capsule {
     /// The point of the axis nearest `q`.
     fn nearest(&self, q: &Point) -> Point {
-        let ab = self.b - self.a;
-        let t = if ab.norm_squared() > 0.0 {
-            ((q - self.a).dot(&ab) / ab.norm_squared()).clamp(0.0, 1.0)
-        } else {
-            0.0
-        };
-        self.a + ab * t
+        stitch_robot::nearest_on_segment(q, &self.a, &self.b).0
     }
 
     /// Distance from `q` to the axis, m.
@@ -500,20 +494,7 @@ impl Chain {
 
     /// Distance from `p` to the chain, m.
     fn distance_to(&self, p: &Point) -> f64 {
-        if self.points.len() == 1 {
-            return (p - self.points[0]).norm();
-        }
-        self.points
-            .windows(2)
-            .map(|w| {
-                Capsule {
-                    a: w[0],
-                    b: w[1],
-                    radius: 0.0,
-                }
-                .axis_distance(p)
-            })
-            .fold(f64::INFINITY, f64::min)
+        stitch_robot::distance_to_polyline(p, &self.points)
     }
 }
 
