@@ -404,6 +404,21 @@ fn describe(schema: &str, bytes: &[u8]) -> String {
                 }
             })
         }
+        "stitch_msgs/msg/ThreadTrace" => {
+            d::<stitch_recorder::ThreadTrace>(bytes, "stitch_msgs/msg/ThreadTrace").map(|t| {
+                if t.ok {
+                    format!(
+                        "step `{}`: {} points, {:.1} mm long, {} hidden spans",
+                        t.step,
+                        t.points.len(),
+                        t.length_m * 1e3,
+                        t.hidden_from_m.len()
+                    )
+                } else {
+                    format!("step `{}`: no trace, {}", t.step, t.failure)
+                }
+            })
+        }
         "sensor_msgs/msg/CompressedImage" => {
             d::<stitch_recorder::CompressedImage>(bytes, "sensor_msgs/msg/CompressedImage")
                 .map(|i| format!("{} image, {} bytes", i.format, i.data.len()))

@@ -19,10 +19,14 @@ fn stitch(args: &[&str]) -> std::process::Output {
 }
 
 fn record(name: &str, extra: &[&str]) -> PathBuf {
+    record_plan(name, "scripts/stitch_human.rhai", extra)
+}
+
+fn record_plan(name: &str, plan: &str, extra: &[&str]) -> PathBuf {
     let path = tmp(name);
     let out = stitch(
         &[
-            &["run", "scripts/stitch_human.rhai", "--journal"][..],
+            &["run", plan, "--journal"][..],
             &[path.to_str().expect("utf-8")],
             extra,
         ]
@@ -142,6 +146,7 @@ fn readers_this_project_did_not_write_decode_every_message() {
         record("py-mock.mcap", &["--seed", "1"]),
         record("py-scripted.mcap", &["--seed", "1", "--robot", "scripted"]),
         record("py-pipeline.mcap", &pipeline),
+        record_plan("py-thread.mcap", "scripts/stitch_thread.rhai", &pipeline),
     ];
     let out = Command::new(python())
         .arg(root().join("tests/python/read_mcap.py"))
@@ -154,7 +159,7 @@ fn readers_this_project_did_not_write_decode_every_message() {
         "{said}\n{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    assert_eq!(said.matches(r#""agree": true"#).count(), 3, "{said}");
+    assert_eq!(said.matches(r#""agree": true"#).count(), 4, "{said}");
     assert!(said.contains("/stitch/transitions"), "{said}");
     let lines: Vec<&str> = said.lines().collect();
     // What the arms were told and measured, what the estimator said (and the truth beside
@@ -192,6 +197,16 @@ fn readers_this_project_did_not_write_decode_every_message() {
         );
         assert!(lines[2].contains(topic), "{topic}: {}", lines[2]);
     }
+    // The thread-aware plan's traces, in 3D and on the left image; a plan that never looks
+    // at the thread records none.
+    for topic in THREAD_TOPICS {
+        assert!(
+            lines[3].contains(&format!("\"{topic}\"")),
+            "{topic}: {}",
+            lines[3]
+        );
+        assert!(!lines[2].contains(topic), "{topic}: {}", lines[2]);
+    }
     // Every topic the documented Foxglove layout shows is in a pipeline run's file.
     let layout: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(root().join("docs/foxglove/stitch-layout.json")).expect("layout"),
@@ -219,7 +234,8 @@ fn readers_this_project_did_not_write_decode_every_message() {
     }
     assert!(shown.len() >= 10, "{shown:?}");
     for topic in &shown {
-        let in_file = lines[2].contains(&format!("\"{topic}\""));
+        let quoted = format!("\"{topic}\"");
+        let in_file = lines[2].contains(&quoted) || lines[3].contains(&quoted);
         // setpoint_cp is sampled on a robot only; the mock records what flows through.
         assert!(
             in_file || topic.ends_with("/setpoint_cp"),
@@ -234,6 +250,12 @@ fn readers_this_project_did_not_write_decode_every_message() {
         std::fs::read_to_string(jsonl).expect("jsonl")
     );
 }
+
+const THREAD_TOPICS: [&str; 3] = [
+    "/stitch/thread",
+    "/stitch/thread/path",
+    "/stitch/camera/left/thread_annotations",
+];
 
 const FRAME_TOPICS: [&str; 2] = [
     "/stitch/camera/left/image/compressed",

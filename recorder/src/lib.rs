@@ -7,7 +7,8 @@ mod write;
 
 pub use msgs::{
     CHANNELS, COMPRESSED_IMAGE, Channel, Color, CompressedImage, Event, IMAGE_ANNOTATIONS,
-    ImageAnnotations, Log, MsgType, NeedleEstimate, Qos, StepEnd, Transition, schema_text,
+    ImageAnnotations, Log, MsgType, NeedleEstimate, PATH, Path, Qos, StepEnd, THREAD_TRACE,
+    ThreadTrace, Transition, schema_text,
 };
 pub use read::{Recorded, read, read_bytes, recover, rewrite, to_jsonl};
 pub use tap::{FRAME, Tap, Truth};

@@ -85,6 +85,50 @@ pub struct NeedleEstimate {
     pub failure: String,
 }
 
+/// `stitch_msgs/msg/ThreadTrace` (`recorder/msg/ThreadTrace.msg`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ThreadTrace {
+    /// Run time when it was asked.
+    pub stamp: Time,
+    /// The step that asked, empty outside a step.
+    pub step: String,
+    /// Whether `start` was given (false before the first stitch).
+    pub has_start: bool,
+    /// The last stitch's exit point, robot frame, m (zero when not given).
+    pub start: stitch_dvrk::msg::Point,
+    /// The needle's swage, robot frame, m.
+    pub swage: stitch_dvrk::msg::Point,
+    /// The length prior, m (NaN: none).
+    pub length_prior_m: f64,
+    /// Whether there is a trace.
+    pub ok: bool,
+    /// The fitted curve, robot frame, m.
+    pub points: Vec<stitch_dvrk::msg::Point>,
+    /// Each point's uncertainty, m.
+    pub sigma_m: Vec<f64>,
+    /// The curve's length, m.
+    pub length_m: f64,
+    /// Where each hidden stretch begins, m along the curve.
+    pub hidden_from_m: Vec<f64>,
+    /// Where each hidden stretch ends, m along the curve.
+    pub hidden_to_m: Vec<f64>,
+    /// The share of the left-image path that was thread.
+    pub seen_share: f64,
+    /// Points matched between the two views.
+    pub matched: u32,
+    /// The typed failure as JSON, empty when ok.
+    pub failure: String,
+}
+
+/// `nav_msgs/msg/Path`: a traced thread as a line Foxglove's 3D panel draws.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Path {
+    /// Stamp and frame.
+    pub header: stitch_dvrk::msg::Header,
+    /// The points, each as a pose (identity orientation).
+    pub poses: Vec<stitch_dvrk::msg::PoseStamped>,
+}
+
 /// `rcl_interfaces/msg/Log`: what `/rosout` carries (errors, warnings, notes of a run).
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Log {
@@ -364,6 +408,18 @@ pub static NEEDLE_ESTIMATE: MsgType = MsgType {
     name: "stitch_msgs/msg/NeedleEstimate",
     msg: include_str!("../msg/NeedleEstimate.msg"),
     uses: &[&TIME, &POSE, &POINT, &QUATERNION],
+};
+/// `stitch_msgs/msg/ThreadTrace`.
+pub static THREAD_TRACE: MsgType = MsgType {
+    name: "stitch_msgs/msg/ThreadTrace",
+    msg: include_str!("../msg/ThreadTrace.msg"),
+    uses: &[&TIME, &POINT],
+};
+/// `nav_msgs/msg/Path`.
+pub static PATH: MsgType = MsgType {
+    name: "nav_msgs/msg/Path",
+    msg: "std_msgs/Header header\ngeometry_msgs/PoseStamped[] poses\n",
+    uses: &[&HEADER, &TIME, &POSE_STAMPED, &POSE, &POINT, &QUATERNION],
 };
 
 /// How a channel is offered, in the integer form Humble writes (read by Humble, Jazzy and

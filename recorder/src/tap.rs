@@ -8,8 +8,9 @@
 
 use crate::msgs::{
     CircleAnnotation, Color, IMAGE_ANNOTATIONS, ImageAnnotations, JOINT_STATE, LOG, Log, MsgType,
-    NEEDLE_ESTIMATE, NeedleEstimate as EstimateMsg, OPERATING_STATE, POSE_STAMPED, Point2,
-    PointsAnnotation, Qos, TextAnnotation, pose_msg, stamp_ns,
+    NEEDLE_ESTIMATE, NeedleEstimate as EstimateMsg, OPERATING_STATE, PATH, POSE_STAMPED, Path,
+    Point2, PointsAnnotation, Qos, THREAD_TRACE, TextAnnotation, ThreadTrace as TraceMsg, pose_msg,
+    stamp_ns,
 };
 use crate::write::Item;
 use serde::Serialize;
@@ -17,7 +18,10 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex, PoisonError};
 use std::time::Duration;
 use stitch_dvrk::msg::{Header, JointState, OperatingState, PoseStamped};
-use stitch_perception::{NeedleEnd, NeedleEstimate, NeedleEstimator, NeedleHint, PerceptionError};
+use stitch_perception::{
+    NeedleEnd, NeedleEstimate, NeedleEstimator, NeedleHint, PerceptionError, ThreadHint,
+    ThreadTrace,
+};
 use stitch_primitives::Rig;
 use stitch_robot::{
     Arm, Clock, FrameObserver, Jaw, MoveHandle, Needle, Pose, RobotError, SpeedLimits,
@@ -195,6 +199,9 @@ struct Topics {
     needle_pose: Arc<str>,
     needle_truth: Arc<str>,
     annotations: Arc<str>,
+    thread: Arc<str>,
+    thread_path: Arc<str>,
+    thread_annotations: Arc<str>,
 }
 
 impl std::fmt::Debug for Tap {
@@ -218,6 +225,9 @@ impl Tap {
                 needle_pose: "/stitch/needle/pose".into(),
                 needle_truth: "/stitch/needle/truth".into(),
                 annotations: "/stitch/camera/left/annotations".into(),
+                thread: "/stitch/thread".into(),
+                thread_path: "/stitch/thread/path".into(),
+                thread_annotations: "/stitch/camera/left/thread_annotations".into(),
             }),
         }
     }
@@ -462,6 +472,113 @@ impl Tap {
             });
         if let Err(e) = spawned {
             self.log(Log::ERROR, "recorder", &format!("no sampler thread: {e}"));
+        }
+    }
+
+    /// Record a thread trace (or the tracer's typed failure) with the step that asked; a
+    /// trace also as a line in 3D (`nav_msgs/Path`) and, with a calibration, drawn on the
+    /// left image.
+    fn thread(&self, hint: &ThreadHint, result: &Result<ThreadTrace, PerceptionError>) {
+        let t = self.now_ns();
+        let step = self
+            .shared
+            .step
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone();
+        let point = |p: &stitch_robot::Point| stitch_dvrk::msg::Point {
+            x: p.x,
+            y: p.y,
+            z: p.z,
+        };
+        let mut msg = TraceMsg {
+            stamp: stamp_ns(t),
+            step,
+            has_start: hint.start.is_some(),
+            start: hint.start.as_ref().map(point).unwrap_or_default(),
+            swage: point(&hint.swage),
+            length_prior_m: hint.length_m.unwrap_or(f64::NAN),
+            ok: result.is_ok(),
+            points: Vec::new(),
+            sigma_m: Vec::new(),
+            length_m: f64::NAN,
+            hidden_from_m: Vec::new(),
+            hidden_to_m: Vec::new(),
+            seen_share: f64::NAN,
+            matched: 0,
+            failure: String::new(),
+        };
+        match result {
+            Ok(trace) => {
+                msg.points = trace.points.iter().map(point).collect();
+                msg.sigma_m.clone_from(&trace.sigma_m);
+                msg.length_m = trace.length_m;
+                msg.hidden_from_m = trace.hidden.iter().map(|h| h[0]).collect();
+                msg.hidden_to_m = trace.hidden.iter().map(|h| h[1]).collect();
+                msg.seen_share = trace.seen_share;
+                msg.matched = u32::try_from(trace.matched).unwrap_or(u32::MAX);
+            }
+            Err(f) => msg.failure = serde_json::to_string(f).unwrap_or_else(|_| f.to_string()),
+        }
+        self.put(&self.topics.thread, &THREAD_TRACE, t, &msg);
+        let Ok(trace) = result else { return };
+        let path = Path {
+            header: self.header(t),
+            poses: trace
+                .points
+                .iter()
+                .map(|p| PoseStamped {
+                    header: self.header(t),
+                    pose: stitch_dvrk::msg::Pose {
+                        position: point(p),
+                        orientation: stitch_dvrk::msg::Quaternion {
+                            x: 0.0,
+                            y: 0.0,
+                            z: 0.0,
+                            w: 1.0,
+                        },
+                    },
+                })
+                .collect(),
+        };
+        self.put(&self.topics.thread_path, &PATH, t, &path);
+        let calibration = self
+            .shared
+            .calibration
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone();
+        if let Some(c) = calibration {
+            let stamp = stamp_ns(t);
+            let line: Vec<Point2> = trace
+                .points
+                .iter()
+                .filter_map(|p| c.left_pixel(p))
+                .map(|[x, y]| Point2 { x, y })
+                .collect();
+            let drawn = ImageAnnotations {
+                points: vec![PointsAnnotation {
+                    timestamp: stamp,
+                    kind: PointsAnnotation::LINE_STRIP,
+                    points: line,
+                    outline_color: Color {
+                        r: 0.2,
+                        g: 0.7,
+                        b: 1.0,
+                        a: 1.0,
+                    },
+                    outline_colors: Vec::new(),
+                    fill_color: Color::default(),
+                    thickness: 2.0,
+                }],
+                ..ImageAnnotations::default()
+            };
+            self.put(
+                &self.topics.thread_annotations,
+                &IMAGE_ANNOTATIONS,
+                t,
+                &drawn,
+            );
         }
     }
 
@@ -730,10 +847,9 @@ impl NeedleEstimator for TappedEstimator {
         self.tap.estimate(hint, &r, truth, self.needle.as_ref());
         r
     }
-    fn trace_thread(
-        &mut self,
-        hint: &stitch_perception::ThreadHint,
-    ) -> Result<stitch_perception::ThreadTrace, PerceptionError> {
-        self.estimator.trace_thread(hint)
+    fn trace_thread(&mut self, hint: &ThreadHint) -> Result<ThreadTrace, PerceptionError> {
+        let r = self.estimator.trace_thread(hint);
+        self.tap.thread(hint, &r);
+        r
     }
 }

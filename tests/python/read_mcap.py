@@ -27,7 +27,17 @@ def with_mcap(path):
                 assert bytes(decoded.data[:2]) == b"\xff\xd8", "a JPEG"
             if schema.name == "foxglove_msgs/msg/ImageAnnotations":
                 assert decoded.points and decoded.points[0].type == 3, "a line strip"
-                assert len(decoded.points[0].points) > 2, "the needle's arc"
+                assert len(decoded.points[0].points) > 2, "the needle's arc or the thread"
+            if schema.name == "stitch_msgs/msg/ThreadTrace":
+                t = decoded
+                assert len(t.sigma_m) == len(t.points), "a sigma per point"
+                assert len(t.hidden_from_m) == len(t.hidden_to_m), "hidden stretches in pairs"
+                if t.ok:
+                    assert len(t.points) >= 2 and t.failure == "", t.failure
+                    assert all(0 <= a <= b <= t.length_m + 1e-9
+                               for a, b in zip(t.hidden_from_m, t.hidden_to_m)), "inside the curve"
+                else:
+                    assert not t.points and json.loads(t.failure)["kind"], t.failure
             if schema.name == "geometry_msgs/msg/PoseStamped":
                 q = decoded.pose.orientation
                 norm = q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w
