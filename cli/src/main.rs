@@ -13,6 +13,7 @@ mod replay;
 #[cfg(feature = "ros2")]
 mod ros2;
 mod segmenter;
+mod shard;
 mod show;
 mod trials;
 #[cfg(feature = "console")]

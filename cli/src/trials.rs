@@ -20,7 +20,10 @@ pub const DEFAULT_POLICIES: [&str; 5] = [
 ];
 
 #[derive(Debug, clap::Args)]
+#[command(args_conflicts_with_subcommands = true, subcommand_negates_reqs = true)]
 pub struct TrialsArgs {
+    #[command(subcommand)]
+    command: Option<TrialsCommand>,
     /// Trials per policy.
     #[arg(long, default_value_t = 15)]
     trials: usize,
@@ -36,8 +39,13 @@ pub struct TrialsArgs {
     jobs: Option<usize>,
     /// Directory to write table.md, trials.csv, trials.json, histogram.svg, histogram.png and
     /// journals/ (one file per trial) into (created if missing).
-    #[arg(long)]
-    out: PathBuf,
+    #[arg(long, required = true)]
+    out: Option<PathBuf>,
+    /// Run only shard K of N (K from 1): trial i (from 0) of every policy where i mod N is
+    /// K − 1, with seed SEED + i as always; write its records (shard.json) and journals into
+    /// --out for `stitch trials merge` (docs/experiments.md, "Running on a cluster").
+    #[arg(long, value_name = "K/N")]
+    shard: Option<crate::shard::Shard>,
     /// How the mock estimates the needle pose (see `stitch run --help`).
     #[arg(long, value_enum, default_value_t = PerceptionKind::Model)]
     perception: PerceptionKind,
@@ -58,8 +66,25 @@ pub struct TrialsArgs {
     commands: Option<PathBuf>,
 }
 
+/// `stitch trials merge`.
+#[derive(Debug, clap::Subcommand)]
+pub enum TrialsCommand {
+    /// Merge the shard directories of one `stitch trials … --shard K/N` run into what the
+    /// run would have written on one machine: the same table, CSV, JSON, histograms and
+    /// journals, byte for byte. Refuses missing, duplicated or mismatched shards.
+    Merge {
+        /// The shard directories (each with its shard.json), in any order.
+        #[arg(required = true)]
+        dirs: Vec<PathBuf>,
+        /// Directory to write the merged results into (created if missing).
+        #[arg(long)]
+        out: PathBuf,
+    },
+}
+
 /// How `stitch trials` writes each trial's journal.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
 pub enum JournalFormat {
     /// `journals/POLICY-SEED.mcap`: the flight recorder's file.
     Mcap,
@@ -118,6 +143,10 @@ struct Policy {
 }
 
 pub fn trials(args: TrialsArgs) -> anyhow::Result<u8> {
+    if let Some(TrialsCommand::Merge { dirs, out }) = &args.command {
+        return crate::shard::merge(dirs, out);
+    }
+    let out = args.out.clone().context("--out is required")?;
     if !(1..=MAX_TRIALS).contains(&args.trials) {
         anyhow::bail!("--trials {}: expected 1 to {MAX_TRIALS}", args.trials);
     }
@@ -163,17 +192,32 @@ pub fn trials(args: TrialsArgs) -> anyhow::Result<u8> {
             path,
         });
     }
-    std::fs::create_dir_all(args.out.join("journals"))
-        .with_context(|| format!("cannot create {}", args.out.display()))?;
+    std::fs::create_dir_all(out.join("journals"))
+        .with_context(|| format!("cannot create {}", out.display()))?;
     if args.record_frames != 0.0 && args.journal_format != JournalFormat::Mcap {
         anyhow::bail!("--record-frames records into MCAP journals: drop --journal-format jsonl");
     }
     let perception = args
         .perception
         .of(&mock, &crate::segmenter::SegmenterChoice::Classical)?;
+    let shard = args.shard;
     let jobs: Vec<(usize, u64)> = (0..policies.len())
-        .flat_map(|p| (0..args.trials as u64).map(move |i| (p, args.seed + i)))
+        .flat_map(|p| {
+            (0..args.trials as u64)
+                .filter(move |&i| shard.is_none_or(|s| s.holds(i)))
+                .map(move |i| (p, args.seed + i))
+        })
         .collect();
+    if jobs.is_empty() {
+        // A shard past the trials (--shard 9/10 of 5 trials): nothing to run, still a shard.
+        let shard = shard.context("no trials to run")?;
+        crate::shard::write(&out, shard, &settings(&args, &policies)?, &[])?;
+        eprintln!(
+            "shard {shard}: no trials fall to it; wrote {}",
+            out.display()
+        );
+        return Ok(exit::OK);
+    }
     let workers = args
         .jobs
         .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
@@ -187,6 +231,11 @@ pub fn trials(args: TrialsArgs) -> anyhow::Result<u8> {
     let results: Mutex<Vec<Option<TrialResult>>> =
         Mutex::new((0..jobs.len()).map(|_| None).collect());
     let next = AtomicUsize::new(0);
+    let done = AtomicUsize::new(0);
+    // In a batch log (no terminal) the bar draws nothing: plain lines, about every 5 %.
+    let lines = !std::io::IsTerminal::is_terminal(&std::io::stderr());
+    let every = jobs.len().div_ceil(20).max(1);
+    let label = shard.map_or_else(|| "trials".to_string(), |s| format!("shard {s}"));
     std::thread::scope(|s| {
         for _ in 0..workers {
             s.spawn(|| {
@@ -194,11 +243,19 @@ pub fn trials(args: TrialsArgs) -> anyhow::Result<u8> {
                     let j = next.fetch_add(1, Ordering::Relaxed);
                     let Some(&(p, seed)) = jobs.get(j) else { break };
                     let policy = &policies[p];
-                    let result = trial(policy, seed, &args, &mock, &perception);
+                    let result = trial(policy, seed, &args, &out, &mock, &perception);
                     results
                         .lock()
                         .unwrap_or_else(std::sync::PoisonError::into_inner)[j] = Some(result);
                     bar.inc(1);
+                    let n = done.fetch_add(1, Ordering::Relaxed) + 1;
+                    if lines && (n % every == 0 || n == jobs.len()) {
+                        eprintln!(
+                            "{label}: {n}/{} trials done, {:.1} s",
+                            jobs.len(),
+                            started.elapsed().as_secs_f64()
+                        );
+                    }
                 }
             });
         }
@@ -218,22 +275,106 @@ pub fn trials(args: TrialsArgs) -> anyhow::Result<u8> {
         })?;
         records[p].push(record);
     }
-    let all: Vec<Metrics> = policies
-        .iter()
-        .zip(&records)
-        .map(|(p, r)| metrics(&p.name, r))
-        .collect();
-    let write = |name: &str, text: &[u8]| {
-        let path = args.out.join(name);
-        std::fs::write(&path, text).with_context(|| format!("cannot write {}", path.display()))
+    let took = |what: &str| {
+        eprintln!(
+            "{} trials of {} policies in {:.1} s on {workers} threads; wrote {what}{}",
+            jobs.len(),
+            policies.len(),
+            started.elapsed().as_secs_f64(),
+            out.display()
+        );
     };
-    let table = table_md(&all, &args);
-    write("table.md", table.as_bytes())?;
-    write("trials.csv", csv(&records).as_bytes())?;
-    let json = serde_json::json!({
+    if let Some(shard) = shard {
+        crate::shard::write(&out, shard, &settings(&args, &policies)?, &records)?;
+        took(&format!("shard {shard} into "));
+        return Ok(exit::OK);
+    }
+    let summary = Summary {
+        seed: args.seed,
+        trials: args.trials,
+        perception: perception_name(args.perception),
+        policies: policies.iter().map(|p| p.name.clone()).collect(),
+    };
+    let table = write_results(&out, &summary, &records)?;
+    print!("{table}");
+    took("");
+    Ok(exit::OK)
+}
+
+/// What the results' files say about the run besides its records.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Summary {
+    /// The first trial's seed.
+    pub seed: u64,
+    /// Trials per policy.
+    pub trials: usize,
+    /// `--perception`, as trials.json writes it.
+    pub perception: String,
+    /// The policies' plan names, in their order.
+    pub policies: Vec<String>,
+}
+
+fn perception_name(p: PerceptionKind) -> String {
+    format!("{p:?}").to_lowercase()
+}
+
+/// Everything that decides a trial's record and journal besides its seed, and the program:
+/// shards of one run must agree on all of it (`stitch trials merge` compares).
+fn settings(args: &TrialsArgs, policies: &[Policy]) -> anyhow::Result<serde_json::Value> {
+    use sha2::Digest as _;
+    let hash = |p: &Path| -> anyhow::Result<String> {
+        let bytes = std::fs::read(p).with_context(|| format!("cannot read {}", p.display()))?;
+        Ok(sha2::Sha256::digest(&bytes)
+            .iter()
+            .map(|b| format!("{b:02x}"))
+            .collect())
+    };
+    let mut plans = Vec::new();
+    for p in policies {
+        plans.push(serde_json::json!({
+            "key": p.key,
+            "name": p.name,
+            "plan_sha256": hash(&p.path)?,
+        }));
+    }
+    Ok(serde_json::json!({
+        "program": crate::shard::PROGRAM,
         "seed": args.seed,
         "trials_per_policy": args.trials,
-        "perception": format!("{:?}", args.perception).to_lowercase(),
+        "policies": plans,
+        "perception": perception_name(args.perception),
+        "mock_config_sha256": args.mock_config.as_deref().map(hash).transpose()?,
+        "commands_sha256": args.commands.as_deref().map(hash).transpose()?,
+        "journal_format": args.journal_format,
+        "record_frames_hz": args.record_frames,
+    }))
+}
+
+/// Write table.md, trials.csv, trials.json, histogram.svg and histogram.png into `out` from
+/// every policy's records (in seed order); the table's text. One run on one machine and a
+/// merge of its shards both end here, so their files are the same bytes.
+pub fn write_results(
+    out: &Path,
+    summary: &Summary,
+    records: &[Vec<TrialRecord>],
+) -> anyhow::Result<String> {
+    let all: Vec<Metrics> = summary
+        .policies
+        .iter()
+        .zip(records)
+        .map(|(name, r)| metrics(name, r))
+        .collect();
+    let write = |name: &str, text: &[u8]| {
+        let path = out.join(name);
+        std::fs::write(&path, text).with_context(|| format!("cannot write {}", path.display()))
+    };
+    let table = table_md(&all, summary);
+    write("table.md", table.as_bytes())?;
+    write("trials.csv", csv(records).as_bytes())?;
+    let json = serde_json::json!({
+        "seed": summary.seed,
+        "trials_per_policy": summary.trials,
+        "perception": summary.perception,
         "seeds": "trial i (from 0) of every policy runs with seed + i",
         "metrics": all,
         "trials": records.iter().flatten().collect::<Vec<_>>(),
@@ -242,21 +383,10 @@ pub fn trials(args: TrialsArgs) -> anyhow::Result<u8> {
         "trials.json",
         (serde_json::to_string_pretty(&json)? + "\n").as_bytes(),
     )?;
-    let hist = histogram(
-        &policies.iter().map(|p| p.name.clone()).collect::<Vec<_>>(),
-        &records,
-    );
+    let hist = histogram(&summary.policies, records);
     write("histogram.svg", histogram_svg(&hist).as_bytes())?;
-    crate::plot::histogram_png(&args.out.join("histogram.png"), &hist)?;
-    print!("{table}");
-    eprintln!(
-        "{} trials of {} policies in {:.1} s on {workers} threads; wrote {}",
-        jobs.len(),
-        policies.len(),
-        started.elapsed().as_secs_f64(),
-        args.out.display()
-    );
-    Ok(exit::OK)
+    crate::plot::histogram_png(&out.join("histogram.png"), &hist)?;
+    Ok(table)
 }
 
 /// One trial, its journal written as it runs (MCAP) or at its end (JSON Lines): memory holds
@@ -265,6 +395,7 @@ fn trial(
     policy: &Policy,
     seed: u64,
     args: &TrialsArgs,
+    out: &Path,
     mock: &crate::MockConfig,
     perception: &MockPerception,
 ) -> TrialResult {
@@ -272,8 +403,7 @@ fn trial(
         JournalFormat::Mcap => "mcap",
         JournalFormat::Jsonl => "jsonl",
     };
-    let path = args
-        .out
+    let path = out
         .join("journals")
         .join(format!("{}-{seed}.{ext}", policy.key));
     let recorder = match args.journal_format {
@@ -337,7 +467,7 @@ fn ci(e: &Estimate, scale: f64, digits: usize) -> String {
     )
 }
 
-fn table_md(all: &[Metrics], args: &TrialsArgs) -> String {
+fn table_md(all: &[Metrics], args: &Summary) -> String {
     let mut s = String::new();
     let _ = writeln!(
         s,
@@ -346,7 +476,7 @@ fn table_md(all: &[Metrics], args: &TrialsArgs) -> String {
         args.seed,
         args.seed + args.trials as u64 - 1,
         args.seed,
-        format!("{:?}", args.perception).to_lowercase()
+        args.perception
     );
     s += "| policy | mean sutures to failure | single-suture success | three-throw success | full-wound success | mean time per suture | I | E | H | T | mean sutures to intervention |\n|---|---|---|---|---|---|---|---|---|---|---|\n";
     for m in all {

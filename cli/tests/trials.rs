@@ -227,3 +227,155 @@ fn the_results_in_docs_are_what_the_documented_command_writes() {
         assert!(page.contains(row), "docs/experiments.md lacks {row}");
     }
 }
+
+/// `stitch trials ARGS --out DIR`, which must succeed; its stderr.
+fn run_ok(args: &[&str], out: &Path) -> String {
+    let o = stitch(&[args, &["--out", out.to_str().expect("utf-8")]].concat());
+    assert_eq!(o.status.code(), Some(0), "{}", text(&o.stderr));
+    text(&o.stderr)
+}
+
+#[test]
+fn merged_shards_are_the_one_machine_run_byte_for_byte() {
+    // Nine trials of two policies: with seven shards some hold one trial, some two.
+    let args = [
+        "trials",
+        "--trials",
+        "9",
+        "--seed",
+        "3",
+        "--policies",
+        "stitch,sensing_only",
+    ];
+    let one = dir("one");
+    run_ok(&args, &one);
+    let whole = files(&one);
+    assert_eq!(
+        whole
+            .iter()
+            .filter(|(n, _)| n.starts_with("journals"))
+            .count(),
+        18
+    );
+    for n in [1u32, 2, 7] {
+        let shards: Vec<PathBuf> = (1..=n).map(|k| dir(&format!("shard-{k}-of-{n}"))).collect();
+        for (k, d) in (1..=n).zip(&shards) {
+            let said = run_ok(&[&args[..], &["--shard", &format!("{k}/{n}")]].concat(), d);
+            assert!(said.contains(&format!("shard {k}/{n}")), "{said}");
+            assert!(
+                !d.join("table.md").exists(),
+                "a shard writes no table of its own"
+            );
+        }
+        // In any order.
+        let merged = dir(&format!("merged-{n}"));
+        let mut cmd: Vec<String> = vec!["trials".into(), "merge".into()];
+        cmd.extend(shards.iter().rev().map(|d| d.display().to_string()));
+        cmd.extend(["--out".into(), merged.display().to_string()]);
+        let o = stitch(&cmd.iter().map(String::as_str).collect::<Vec<_>>());
+        assert_eq!(o.status.code(), Some(0), "{}", text(&o.stderr));
+        assert!(
+            text(&o.stderr).contains(&format!("shards done: {n} of {n}")),
+            "{}",
+            text(&o.stderr)
+        );
+        let got = files(&merged);
+        assert_eq!(
+            got.iter().map(|(n, _)| n).collect::<Vec<_>>(),
+            whole.iter().map(|(n, _)| n).collect::<Vec<_>>(),
+            "the same files"
+        );
+        for ((name, a), (_, b)) in whole.iter().zip(&got) {
+            assert!(a == b, "{name} differs after merging {n} shards");
+        }
+    }
+}
+
+#[test]
+fn missing_duplicated_or_foreign_shards_are_refused_with_the_reason() {
+    let args = [
+        "trials",
+        "--trials",
+        "4",
+        "--seed",
+        "1",
+        "--policies",
+        "stitch",
+    ];
+    let s: Vec<PathBuf> = (1..=3).map(|k| dir(&format!("refuse-{k}"))).collect();
+    for (k, d) in (1..=3).zip(&s) {
+        run_ok(&[&args[..], &["--shard", &format!("{k}/3")]].concat(), d);
+    }
+    // Another run's shard 3: other seeds.
+    let other = dir("refuse-other");
+    run_ok(
+        &[
+            "trials",
+            "--trials",
+            "4",
+            "--seed",
+            "2",
+            "--policies",
+            "stitch",
+            "--shard",
+            "3/3",
+        ],
+        &other,
+    );
+    // Another split's shard: 2 of 2.
+    let split = dir("refuse-split");
+    run_ok(&[&args[..], &["--shard", "2/2"]].concat(), &split);
+    let merge = |dirs: &[&PathBuf]| -> (Option<i32>, String) {
+        let mut cmd: Vec<String> = vec!["trials".into(), "merge".into()];
+        cmd.extend(dirs.iter().map(|d| d.display().to_string()));
+        cmd.extend(["--out".into(), dir("refused").display().to_string()]);
+        let o = stitch(&cmd.iter().map(String::as_str).collect::<Vec<_>>());
+        (o.status.code(), text(&o.stderr))
+    };
+    for (dirs, why) in [
+        (vec![&s[0], &s[1]], "shard 3/3 of the run is not here"),
+        (vec![&s[0], &s[1], &s[1], &s[2]], "shard 2/3 twice"),
+        (
+            vec![&s[0], &s[1], &other],
+            "not shards of one run: seed: 1 against 2",
+        ),
+        (vec![&s[0], &split], "not one split"),
+    ] {
+        let (code, said) = merge(&dirs);
+        assert_eq!(code, Some(1), "{said}");
+        assert!(said.contains(why), "expected {why:?}: {said}");
+    }
+    let (code, said) = merge(&[&dir("refuse-nowhere")]);
+    assert_eq!(code, Some(1), "{said}");
+    assert!(said.contains("not a shard directory"), "{said}");
+    // A shard from another plan text is another run too.
+    let edited = dir("refuse-plan");
+    let plan = dir("refuse-plan.rhai");
+    let text_of = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../scripts/stitch.rhai"),
+    )
+    .expect("plan");
+    std::fs::write(&plan, text_of + "\n// edited\n").expect("write");
+    let o = stitch(&[
+        "trials",
+        "--trials",
+        "4",
+        "--seed",
+        "1",
+        "--policies",
+        plan.to_str().expect("utf-8"),
+        "--shard",
+        "3/3",
+        "--out",
+        edited.to_str().expect("utf-8"),
+    ]);
+    assert_eq!(o.status.code(), Some(0), "{}", text(&o.stderr));
+    let (code, said) = merge(&[&s[0], &s[1], &edited]);
+    assert_eq!(code, Some(1), "{said}");
+    assert!(said.contains("policies"), "{said}");
+    for bad in ["0/3", "4/3", "3", "a/b"] {
+        let o = stitch(&[&args[..], &["--shard", bad, "--out", "/tmp/x"]].concat());
+        assert_eq!(o.status.code(), Some(2), "{bad}");
+        assert!(text(&o.stderr).contains("expected K/N"), "{bad}");
+    }
+}
