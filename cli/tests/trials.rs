@@ -1,5 +1,8 @@
-//! `stitch trials`: every file written, the same bytes whatever the number of threads, and
-//! bad arguments refused with the reason.
+//! `stitch trials`: every file written, the same bytes whatever the number of threads or
+//! shards (merged by hand or by a local Ray cluster), and bad arguments refused with the
+//! reason.
+
+mod support;
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -377,5 +380,48 @@ fn missing_duplicated_or_foreign_shards_are_refused_with_the_reason() {
         let o = stitch(&[&args[..], &["--shard", bad, "--out", "/tmp/x"]].concat());
         assert_eq!(o.status.code(), Some(2), "{bad}");
         assert!(text(&o.stderr).contains("expected K/N"), "{bad}");
+    }
+}
+
+#[test]
+fn a_local_ray_cluster_runs_the_shards_retries_a_failed_one_and_merges_the_same_bytes() {
+    let args = [
+        "--trials",
+        "5",
+        "--seed",
+        "2",
+        "--policies",
+        "stitch,sensing_only",
+    ];
+    let one = dir("ray-one");
+    run_ok(&[&["trials"][..], &args].concat(), &one);
+    let (work, merged) = (dir("ray-work"), dir("ray-merged"));
+    let o = Command::new(support::python())
+        .arg(support::root().join("cluster/ray_trials.py"))
+        .args(["--stitch", env!("CARGO_BIN_EXE_stitch"), "--shards", "3"])
+        .args(["--work", work.to_str().expect("utf-8")])
+        .args(["--out", merged.to_str().expect("utf-8")])
+        // Shard 2's first try fails: Ray runs it again.
+        .args(["--chaos", "2", "--"])
+        .args(args)
+        .current_dir(support::root())
+        .output()
+        .expect("python runs the Ray driver");
+    let (out, err) = (text(&o.stdout), text(&o.stderr));
+    assert_eq!(o.status.code(), Some(0), "{out}\n{err}");
+    assert!(
+        work.join("chaos-2").exists(),
+        "shard 2 failed once: {out}\n{err}"
+    );
+    for k in 1..=3 {
+        assert!(out.contains(&format!("shard {k}/3 done")), "{out}\n{err}");
+    }
+    let (whole, got) = (files(&one), files(&merged));
+    assert_eq!(
+        got.iter().map(|(n, _)| n).collect::<Vec<_>>(),
+        whole.iter().map(|(n, _)| n).collect::<Vec<_>>()
+    );
+    for ((name, a), (_, b)) in whole.iter().zip(&got) {
+        assert!(a == b, "{name} differs after the Ray run");
     }
 }
