@@ -56,6 +56,40 @@ fn export(path: &Path) -> String {
     String::from_utf8(out.stdout).expect("utf-8")
 }
 
+/// Foxglove's and Lichtblick's own readers (`@mcap/core`'s indexed reader, every message
+/// decoded by `@foxglove/rosmsg2-serialization`; tests/node/read_mcap.js) over `files`: one
+/// JSON line per file, after asserting each opened and agreed with its summary.
+fn foxglove_reads(files: &[&Path]) -> Vec<serde_json::Value> {
+    let setup = Command::new("bash")
+        .arg(root().join("tests/node/setup.sh"))
+        .output()
+        .expect("bash runs tests/node/setup.sh");
+    assert!(
+        setup.status.success(),
+        "tests/node/setup.sh failed (needs node and npm, and the npm registry): {}",
+        String::from_utf8_lossy(&setup.stderr)
+    );
+    let modules = String::from_utf8_lossy(&setup.stdout).trim().to_string();
+    let out = Command::new("node")
+        .arg(root().join("tests/node/read_mcap.js"))
+        .args(files)
+        .env("NODE_PATH", modules)
+        .output()
+        .expect("node runs");
+    let said = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{said}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let lines: Vec<serde_json::Value> = said
+        .lines()
+        .map(|l| serde_json::from_str(l).expect("a JSON line"))
+        .collect();
+    assert_eq!(lines.len(), files.len(), "{said}");
+    lines
+}
+
 /// `stitch journal recover FROM --out TO`, which must succeed.
 fn recover(from: &Path, to: &Path) {
     let out = stitch(&[
@@ -129,6 +163,11 @@ fn a_file_cut_short_is_read_to_its_last_closed_chunk_and_recovered_whole() {
             said.contains("plan.rhai") && said.contains("plan_sha256"),
             "metadata and attachments recovered: {said}"
         );
+        // Foxglove opens the recovered file and reads the messages the Python readers do.
+        let py: serde_json::Value =
+            serde_json::from_str(said.lines().next().expect("a line")).expect("JSON");
+        let fox = foxglove_reads(&[&fixed]);
+        assert_eq!(fox[0]["foxglove"], py["mcap"], "{fox:?} against {py}");
     }
 }
 
@@ -160,6 +199,13 @@ fn readers_this_project_did_not_write_decode_every_message() {
         String::from_utf8_lossy(&out.stderr)
     );
     assert_eq!(said.matches(r#""agree": true"#).count(), 4, "{said}");
+    // Foxglove's own reader opens each file (a chunk without message indexes, which it
+    // refuses, is never written) and decodes the same messages.
+    let fox = foxglove_reads(&files.iter().map(PathBuf::as_path).collect::<Vec<_>>());
+    for (line, f) in said.lines().zip(&fox) {
+        let py: serde_json::Value = serde_json::from_str(line).expect("JSON");
+        assert_eq!(f["foxglove"], py["mcap"], "{f} against {py}");
+    }
     assert!(said.contains("/stitch/transitions"), "{said}");
     let lines: Vec<&str> = said.lines().collect();
     // What the arms were told and measured, what the estimator said (and the truth beside

@@ -307,21 +307,31 @@ pub fn rewrite(
         })
         .map_err(err)?;
     }
-    let mut schema_ids = BTreeMap::new();
-    for (id, (name, encoding, data)) in &got.schemas {
-        schema_ids.insert(*id, w.add_schema(name, encoding, data).map_err(err)?);
-    }
-    let mut channel_ids = BTreeMap::new();
-    for (id, c) in &got.channels {
-        let schema = schema_ids.get(&c.schema_id).copied().unwrap_or(0);
-        channel_ids.insert(
-            *id,
-            w.add_channel(schema, &c.topic, &c.message_encoding, &c.metadata)
-                .map_err(err)?,
-        );
-    }
+    // Schemas and channels in the order their first messages come, each just before it:
+    // never a chunk of them alone, which Foxglove's indexed reader refuses (a channel with no
+    // message is left out).
+    let mut schema_ids: BTreeMap<u16, u16> = BTreeMap::new();
+    let mut channel_ids: BTreeMap<u16, u16> = BTreeMap::new();
     let mut sequence: BTreeMap<u16, u32> = BTreeMap::new();
     for (channel, t, data) in &got.messages {
+        if !channel_ids.contains_key(channel) {
+            let Some(c) = got.channels.get(channel) else {
+                return Err(bad(from, format!("a message on unknown channel {channel}")));
+            };
+            let schema = match (schema_ids.get(&c.schema_id), got.schemas.get(&c.schema_id)) {
+                (Some(s), _) => *s,
+                (None, Some((name, encoding, data))) => {
+                    let s = w.add_schema(name, encoding, data).map_err(err)?;
+                    schema_ids.insert(c.schema_id, s);
+                    s
+                }
+                (None, None) => 0,
+            };
+            let id = w
+                .add_channel(schema, &c.topic, &c.message_encoding, &c.metadata)
+                .map_err(err)?;
+            channel_ids.insert(*channel, id);
+        }
         let Some(id) = channel_ids.get(channel) else {
             return Err(bad(from, format!("a message on unknown channel {channel}")));
         };

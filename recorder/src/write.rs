@@ -256,10 +256,10 @@ impl Recorder {
         for (name, media_type, text) in &info.files {
             attach(name, media_type, text).map_err(&err)?;
         }
-        let mut channels = Channels::default();
-        for c in &CHANNELS {
-            channels.id(&mut w, c.topic, c.ty, c.qos).map_err(&err)?;
-        }
+        // Each channel (with its schema) is added in the chunk of its first message: a chunk
+        // of schemas and channels alone has no message index, and the indexed reader that
+        // Foxglove and Lichtblick use (`@mcap/core`) refuses a file with one.
+        let channels = Channels::default();
         w.flush().map_err(&err)?;
         deliver(&file).map_err(|error| RecorderError::Io {
             path: path.display().to_string(),
