@@ -332,6 +332,15 @@ impl RobotKind {
     }
 }
 
+/// mimalloc, not the system allocator: glibc's malloc gave the renderer's per-frame image
+/// buffers (megabytes each) back to the kernel and faulted them in again on the next frame,
+/// more so with the recorder's writer thread running: a pipeline mission took 257,000 page
+/// faults and 1.78 s with `--journal FILE.mcap` against 67,000 and 1.37 s without
+/// (`perf stat -r 5`). glibc's thresholds can only be fixed with `mallopt` (unsafe, which
+/// this workspace forbids) or an environment variable. Measured in docs/journal.md ("Cost").
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 fn main() -> ExitCode {
     let cli = Cli::parse();
     match run(cli) {
