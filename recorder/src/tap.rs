@@ -475,17 +475,30 @@ impl Tap {
         }
     }
 
+    /// The step under way (`t0 s2 insert a0`), empty between steps.
+    fn step(&self) -> String {
+        self.shared
+            .step
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone()
+    }
+
+    /// The left camera's calibration, once a frame has brought it.
+    fn calibration(&self) -> Option<StereoCalibration> {
+        self.shared
+            .calibration
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone()
+    }
+
     /// Record a thread trace (or the tracer's typed failure) with the step that asked; a
     /// trace also as a line in 3D (`nav_msgs/Path`) and, with a calibration, drawn on the
     /// left image.
     fn thread(&self, hint: &ThreadHint, result: &Result<ThreadTrace, PerceptionError>) {
         let t = self.now_ns();
-        let step = self
-            .shared
-            .step
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .clone();
+        let step = self.step();
         let point = |p: &stitch_robot::Point| stitch_dvrk::msg::Point {
             x: p.x,
             y: p.y,
@@ -542,12 +555,7 @@ impl Tap {
                 .collect(),
         };
         self.put(&self.topics.thread_path, &PATH, t, &path);
-        let calibration = self
-            .shared
-            .calibration
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .clone();
+        let calibration = self.calibration();
         if let Some(c) = calibration {
             let stamp = stamp_ns(t);
             let line: Vec<Point2> = trace
@@ -590,12 +598,7 @@ impl Tap {
         needle: Option<&Needle>,
     ) {
         let t = self.now_ns();
-        let step = self
-            .shared
-            .step
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .clone();
+        let step = self.step();
         let msg = match result {
             Ok(e) => EstimateMsg {
                 stamp: stamp_ns(t),
@@ -625,12 +628,7 @@ impl Tap {
         if let Some(p) = truth {
             self.pose_on(&self.topics.needle_truth, &p);
         }
-        let calibration = self
-            .shared
-            .calibration
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .clone();
+        let calibration = self.calibration();
         if let (Some(c), Some(needle), Ok(e)) = (calibration, needle, result) {
             let image = stamp_ns(u64::try_from(e.stamp.as_nanos()).unwrap_or(u64::MAX));
             let mut drawn = ImageAnnotations::default();
