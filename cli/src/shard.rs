@@ -37,7 +37,15 @@ pub struct Shard {
     pub n: u32,
 }
 
+/// Most shards a run is split into.
+const MAX_SHARDS: u32 = 1_000_000;
+
 impl Shard {
+    /// 1 ≤ K ≤ N ≤ [`MAX_SHARDS`].
+    fn valid(self) -> bool {
+        (1..=self.n).contains(&self.k) && self.n <= MAX_SHARDS
+    }
+
     /// Whether trial `i` (from 0) falls to this shard.
     pub fn holds(self, i: u64) -> bool {
         i % u64::from(self.n) == u64::from(self.k - 1)
@@ -53,16 +61,17 @@ impl std::fmt::Display for Shard {
 impl std::str::FromStr for Shard {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, String> {
-        let bad = || format!("{s:?}: expected K/N with 1 ≤ K ≤ N, e.g. 2/8");
+        let bad = || format!("{s:?}: expected K/N with 1 ≤ K ≤ N ≤ {MAX_SHARDS}, e.g. 2/8");
         let (k, n) = s.split_once('/').ok_or_else(bad)?;
         let (k, n): (u32, u32) = (
             k.trim().parse().map_err(|_| bad())?,
             n.trim().parse().map_err(|_| bad())?,
         );
-        if k == 0 || k > n {
+        let shard = Shard { k, n };
+        if !shard.valid() {
             return Err(bad());
         }
-        Ok(Shard { k, n })
+        Ok(shard)
     }
 }
 
@@ -103,6 +112,13 @@ fn read(dir: &Path) -> anyhow::Result<ShardFile> {
     })?;
     let file: ShardFile = serde_json::from_str(&text)
         .with_context(|| format!("{}: not a shard file", path.display()))?;
+    if !file.shard.valid() {
+        bail!(
+            "{}: shard {}: expected K/N with 1 ≤ K ≤ N ≤ {MAX_SHARDS}",
+            path.display(),
+            file.shard
+        );
+    }
     if file.format != FORMAT {
         bail!("{}: {:?}, expected {FORMAT:?}", path.display(), file.format);
     }

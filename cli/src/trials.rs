@@ -43,7 +43,7 @@ pub struct TrialsArgs {
     out: Option<PathBuf>,
     /// Run only shard K of N (K from 1): trial i (from 0) of every policy where i mod N is
     /// K − 1, with seed SEED + i as always; write its records (shard.json) and journals into
-    /// --out for `stitch trials merge` (docs/experiments.md, "Running on a cluster").
+    /// --out for `stitch trials merge` (docs/experiments.md, "Running on several machines").
     #[arg(long, value_name = "K/N")]
     shard: Option<crate::shard::Shard>,
     /// How the mock estimates the needle pose (see `stitch run --help`).

@@ -376,7 +376,20 @@ fn missing_duplicated_or_foreign_shards_are_refused_with_the_reason() {
     let (code, said) = merge(&[&s[0], &s[1], &edited]);
     assert_eq!(code, Some(1), "{said}");
     assert!(said.contains("policies"), "{said}");
-    for bad in ["0/3", "4/3", "3", "a/b"] {
+    // A hand-edited shard file is refused, not a panic.
+    let file = s[2].join("shard.json");
+    let text = std::fs::read_to_string(&file).expect("shard.json");
+    let k0 = dir("refuse-k0");
+    std::fs::create_dir_all(&k0).expect("dir");
+    std::fs::write(
+        k0.join("shard.json"),
+        text.replace(r#""shard":{"k":3,"n":3}"#, r#""shard":{"k":0,"n":3}"#),
+    )
+    .expect("write");
+    let (code, said) = merge(&[&s[0], &s[1], &k0]);
+    assert_eq!(code, Some(1), "{said}");
+    assert!(said.contains("expected K/N"), "{said}");
+    for bad in ["0/3", "4/3", "3", "a/b", "1/9999999"] {
         let o = stitch(&[&args[..], &["--shard", bad, "--out", "/tmp/x"]].concat());
         assert_eq!(o.status.code(), Some(2), "{bad}");
         assert!(text(&o.stderr).contains("expected K/N"), "{bad}");

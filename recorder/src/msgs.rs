@@ -459,8 +459,8 @@ pub struct Channel {
     pub qos: Qos,
 }
 
-/// The channels every recording has, first, in this order; the arms', the estimator's and
-/// the cameras' follow as their first message comes.
+/// The engine's channels, which every recording has; like the arms', the estimator's and the
+/// cameras', each is added (with its schema) in the chunk of its first message.
 pub const CHANNELS: [Channel; 3] = [
     Channel {
         topic: "/stitch/events",
