@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""`stitch trials` sharded over a Ray cluster: one Ray task per shard, retried by Ray when
+"""`stitch trials` (or `stitch sweep`) sharded over a Ray cluster: one Ray task per shard, retried by Ray when
 it fails or its worker dies (a shard is idempotent: run again, it writes the same files),
 then the driver merges the shards into what one machine would have written, byte for byte
 (docs/experiments.md, "Running on several machines").
@@ -8,7 +8,9 @@ then the driver merges the shards into what one machine would have written, byte
         --work /shared/run1/shards --out /shared/run1/results -- \\
         --trials 1000 --perception pipeline
 
-Everything after `--` goes to `stitch trials` (not --shard or --out). With no --address and
+Everything after `--` goes to `stitch trials` (not --shard or --out); `--sweep SPEC.toml`
+runs a sweep's shards instead (`stitch sweep SPEC.toml --shard K/N`, then `stitch sweep
+merge`). With no --address and
 no RAY_ADDRESS, Ray starts a local instance (this machine's cores); on a cluster, run it as
 a Ray job (`ray job submit --working-dir . -- python3 cluster/ray_trials.py …`) or with
 --address auto on a node of the cluster. The binary, the plans and --work must be reachable
@@ -26,12 +28,13 @@ import ray  # noqa: E402  (after the environment it reads)
 
 
 @ray.remote(max_retries=3, retry_exceptions=True)
-def run_shard(stitch, cwd, trials_args, k, n, out, jobs, chaos_marker):
-    """Shard k of n into `out`; raises (and Ray retries it) when the shard fails."""
+def run_shard(stitch, cwd, command, k, n, out, jobs, chaos_marker):
+    """Shard k of n of `stitch COMMAND…` into `out`; raises (and Ray retries it) when the
+    shard fails."""
     if chaos_marker and not os.path.exists(chaos_marker):
         open(chaos_marker, "w").close()
         raise RuntimeError(f"shard {k}/{n}: failed on purpose (--chaos), once")
-    cmd = [stitch, "trials", *trials_args, "--shard", f"{k}/{n}", "--jobs", str(jobs), "--out", out]
+    cmd = [stitch, *command, "--shard", f"{k}/{n}", "--jobs", str(jobs), "--out", out]
     r = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True)
     if r.returncode != 0:
         raise RuntimeError(f"shard {k}/{n}: exit {r.returncode}: {r.stderr[-2000:]}")
@@ -56,7 +59,12 @@ def main():
                    help="Ray cluster to join (`auto`, ray://…); default RAY_ADDRESS or a local instance")
     a.add_argument("--chaos", type=int, default=0, metavar="K",
                    help="make shard K's first try fail, to see Ray retry it (tests)")
+    a.add_argument("--sweep", metavar="SPEC.toml",
+                   help="run `stitch sweep SPEC.toml` sharded instead of `stitch trials`")
     o = a.parse_args(argv)
+    if o.sweep and trials_args:
+        sys.exit("ray_trials.py: with --sweep, the sweep file says everything; nothing after --")
+    command = ["sweep", os.path.abspath(o.sweep)] if o.sweep else ["trials", *trials_args]
     for bad in ("--shard", "--out"):
         if any(t == bad or t.startswith(bad + "=") for t in trials_args):
             sys.exit(f"ray_trials.py: {bad} is set by the driver; drop it after --")
@@ -72,7 +80,7 @@ def main():
             for k in range(1, o.shards + 1)]
     pending = {
         run_shard.options(num_cpus=o.cpus_per_shard).remote(
-            stitch, cwd, trials_args, k, o.shards, dirs[k - 1], o.cpus_per_shard,
+            stitch, cwd, command, k, o.shards, dirs[k - 1], o.cpus_per_shard,
             os.path.join(o.work, f"chaos-{k}") if k == o.chaos else None): k
         for k in range(1, o.shards + 1)
     }
@@ -92,7 +100,7 @@ def main():
     if failed:
         sys.exit(f"ray_trials.py: shards {failed} failed; rerun them with "
                  f"`stitch trials … --shard K/{o.shards}` and merge")
-    r = subprocess.run([stitch, "trials", "merge", *dirs, "--out", o.out], cwd=cwd)
+    r = subprocess.run([stitch, command[0], "merge", *dirs, "--out", o.out], cwd=cwd)
     print(f"ray_trials.py: {o.shards} shards and the merge in {time.monotonic() - started:.1f} s",
           flush=True)
     sys.exit(r.returncode)

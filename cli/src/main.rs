@@ -15,6 +15,7 @@ mod ros2;
 mod segmenter;
 mod shard;
 mod show;
+mod sweep;
 mod trials;
 #[cfg(feature = "console")]
 mod web;
@@ -193,6 +194,11 @@ enum Command {
     /// trial's record and journal, and the Fig. 4 histogram (see docs/experiments.md).
     #[command(after_help = EXIT_CODES)]
     Trials(trials::TrialsArgs),
+    /// A parameter sweep over the mock's configuration: each point a trials run (sharded
+    /// as `trials --shard`), a table of every point's metrics and a plot of the chosen
+    /// metric against each parameter (see docs/experiments.md, "Sweeps").
+    #[command(after_help = EXIT_CODES)]
+    Sweep(sweep::SweepArgs),
     /// Serve the mock dVRK over ROS 2 on the dVRK's CRTK topics (two PSMs and their jaws),
     /// for `stitch run --robot ros2` on one machine (see docs/dvrk.md). Runs until killed.
     #[cfg(feature = "ros2")]
@@ -242,6 +248,13 @@ pub(crate) enum PerceptionKind {
 }
 
 impl PerceptionKind {
+    /// The kind named `name` on the command line.
+    pub(crate) fn from_name(name: &str) -> Option<Self> {
+        [Self::Model, Self::Perfect, Self::Pipeline, Self::Fitted]
+            .into_iter()
+            .find(|k| k.name() == name)
+    }
+
     /// Its name on the command line.
     pub(crate) fn name(self) -> &'static str {
         match self {
@@ -363,6 +376,7 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
             other => perceive::bench(other),
         },
         Command::Trials(args) => trials::trials(args),
+        Command::Sweep(args) => sweep::sweep(args),
         Command::Journal { command } => record::journal(command),
         Command::Replay(args) => replay::replay(&args),
         #[cfg(feature = "ros2")]
@@ -680,6 +694,11 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
 }
 
 /// The mock configuration file, or the defaults without one.
+/// A mock configuration from its text.
+pub(crate) fn read_mock_text(text: &str) -> anyhow::Result<MockConfig> {
+    stitch_cli::inputs::mock_config(text)
+}
+
 pub(crate) fn read_mock_config(path: Option<&Path>) -> anyhow::Result<MockConfig> {
     let Some(path) = path else {
         return Ok(MockConfig::default());

@@ -143,8 +143,15 @@ fn first_difference(a: &serde_json::Value, b: &serde_json::Value) -> Option<Stri
     })
 }
 
-/// `stitch trials merge DIR… --out OUT`.
+/// `stitch trials merge DIR… --out OUT`: the table printed.
 pub fn merge(dirs: &[PathBuf], out: &Path) -> anyhow::Result<u8> {
+    let table = merge_quiet(dirs, out)?;
+    print!("{table}");
+    Ok(crate::exit::OK)
+}
+
+/// Merge the shard directories `dirs` into `out`; the table's text.
+pub fn merge_quiet(dirs: &[PathBuf], out: &Path) -> anyhow::Result<String> {
     let started = std::time::Instant::now();
     let mut shards: Vec<(PathBuf, ShardFile)> = Vec::new();
     for d in dirs {
@@ -292,7 +299,6 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> anyhow::Result<u8> {
         policies,
     };
     let table = crate::trials::write_results(out, &summary, &records)?;
-    print!("{table}");
     eprintln!(
         "merged {} shards: {} trials, {copied} journals, in {:.1} s; wrote {}",
         shards.len(),
@@ -300,5 +306,5 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> anyhow::Result<u8> {
         started.elapsed().as_secs_f64(),
         out.display()
     );
-    Ok(crate::exit::OK)
+    Ok(table)
 }

@@ -142,11 +142,77 @@ struct Policy {
     path: PathBuf,
 }
 
+/// One `stitch trials` run, as the command line or a sweep's point gives it.
+#[derive(Clone, Debug)]
+pub struct Run {
+    pub trials: usize,
+    pub seed: u64,
+    pub policies: Vec<String>,
+    pub jobs: Option<usize>,
+    pub out: PathBuf,
+    pub perception: PerceptionKind,
+    pub mock_config: Option<PathBuf>,
+    pub shard: Option<crate::shard::Shard>,
+    pub journal_format: JournalFormat,
+    pub record_frames: f64,
+    pub commands: Option<PathBuf>,
+    /// Print no table (a sweep prints its own).
+    pub quiet: bool,
+}
+
+impl Run {
+    /// A run with the command line's defaults for what a sweep does not set.
+    #[allow(clippy::too_many_arguments)]
+    pub fn of_sweep(
+        trials: usize,
+        seed: u64,
+        policies: Vec<String>,
+        jobs: Option<usize>,
+        out: PathBuf,
+        perception: PerceptionKind,
+        mock_config: PathBuf,
+        shard: Option<crate::shard::Shard>,
+    ) -> Self {
+        Self {
+            trials,
+            seed,
+            policies,
+            jobs,
+            out,
+            perception,
+            mock_config: Some(mock_config),
+            shard,
+            journal_format: JournalFormat::Mcap,
+            record_frames: 0.0,
+            commands: None,
+            quiet: true,
+        }
+    }
+}
+
 pub fn trials(args: TrialsArgs) -> anyhow::Result<u8> {
     if let Some(TrialsCommand::Merge { dirs, out }) = &args.command {
         return crate::shard::merge(dirs, out);
     }
-    let out = args.out.clone().context("--out is required")?;
+    run(Run {
+        out: args.out.clone().context("--out is required")?,
+        trials: args.trials,
+        seed: args.seed,
+        policies: args.policies,
+        jobs: args.jobs,
+        perception: args.perception,
+        mock_config: args.mock_config,
+        shard: args.shard,
+        journal_format: args.journal_format,
+        record_frames: args.record_frames,
+        commands: args.commands,
+        quiet: false,
+    })
+}
+
+/// Run `args`' trials and write their files (or, with a shard, the shard's).
+pub fn run(args: Run) -> anyhow::Result<u8> {
+    let out = args.out.clone();
     if !(1..=MAX_TRIALS).contains(&args.trials) {
         anyhow::bail!("--trials {}: expected 1 to {MAX_TRIALS}", args.trials);
     }
@@ -296,7 +362,9 @@ pub fn trials(args: TrialsArgs) -> anyhow::Result<u8> {
         policies: policies.iter().map(|p| p.name.clone()).collect(),
     };
     let table = write_results(&out, &summary, &records)?;
-    print!("{table}");
+    if !args.quiet {
+        print!("{table}");
+    }
     took("");
     Ok(exit::OK)
 }
@@ -320,7 +388,7 @@ fn perception_name(p: PerceptionKind) -> String {
 
 /// Everything that decides a trial's record and journal besides its seed, and the program:
 /// shards of one run must agree on all of it (`stitch trials merge` compares).
-fn settings(args: &TrialsArgs, policies: &[Policy]) -> anyhow::Result<serde_json::Value> {
+fn settings(args: &Run, policies: &[Policy]) -> anyhow::Result<serde_json::Value> {
     use sha2::Digest as _;
     let hash = |p: &Path| -> anyhow::Result<String> {
         let bytes = std::fs::read(p).with_context(|| format!("cannot read {}", p.display()))?;
@@ -394,7 +462,7 @@ pub fn write_results(
 fn trial(
     policy: &Policy,
     seed: u64,
-    args: &TrialsArgs,
+    args: &Run,
     out: &Path,
     mock: &crate::MockConfig,
     perception: &MockPerception,

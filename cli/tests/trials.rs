@@ -378,12 +378,12 @@ fn missing_duplicated_or_foreign_shards_are_refused_with_the_reason() {
     assert!(said.contains("policies"), "{said}");
     // A hand-edited shard file is refused, not a panic.
     let file = s[2].join("shard.json");
-    let text = std::fs::read_to_string(&file).expect("shard.json");
+    let saved = std::fs::read_to_string(&file).expect("shard.json");
     let k0 = dir("refuse-k0");
     std::fs::create_dir_all(&k0).expect("dir");
     std::fs::write(
         k0.join("shard.json"),
-        text.replace(r#""shard":{"k":3,"n":3}"#, r#""shard":{"k":0,"n":3}"#),
+        saved.replace(r#""shard":{"k":3,"n":3}"#, r#""shard":{"k":0,"n":3}"#),
     )
     .expect("write");
     let (code, said) = merge(&[&s[0], &s[1], &k0]);
