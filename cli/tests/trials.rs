@@ -5,22 +5,11 @@
 mod support;
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
-
-fn stitch(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_stitch"))
-        .args(args)
-        .current_dir(Path::new(env!("CARGO_MANIFEST_DIR")).join(".."))
-        .output()
-        .expect("the stitch binary runs")
-}
+use std::process::Command;
+use support::{stitch_at_root as stitch, text};
 
 fn dir(name: &str) -> PathBuf {
     std::env::temp_dir().join(format!("stitch-trials-{}-{name}", std::process::id()))
-}
-
-fn text(b: &[u8]) -> String {
-    String::from_utf8_lossy(b).into_owned()
 }
 
 fn files(d: &Path) -> Vec<(String, Vec<u8>)> {

@@ -14,6 +14,20 @@ pub fn root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
 }
 
+/// `stitch ARGS` from the repository's root, run to its end.
+pub fn stitch_at_root(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_stitch"))
+        .args(args)
+        .current_dir(root())
+        .output()
+        .expect("the stitch binary runs")
+}
+
+/// Bytes a process wrote, as text.
+pub fn text(b: &[u8]) -> String {
+    String::from_utf8_lossy(b).into_owned()
+}
+
 pub fn tmp(name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("stitch-cli-test-{}", std::process::id()));
     std::fs::create_dir_all(&dir).expect("temp dir");
