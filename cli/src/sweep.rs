@@ -425,7 +425,7 @@ fn summarize(out: &Path, plan: &Plan) -> anyhow::Result<String> {
     let est = |m: &serde_json::Value, key: &str, scale: f64, d: usize| -> String {
         metric_of(m, key).map_or("–".into(), |(v, lo, hi)| {
             if key == "mean_time_per_suture_s" {
-                format!("{:.d$}", v * scale)
+                format!("{:.d$} s", v * scale)
             } else {
                 format!("{:.d$} [{:.d$}, {:.d$}]", v * scale, lo * scale, hi * scale)
             }
@@ -446,7 +446,7 @@ fn summarize(out: &Path, plan: &Plan) -> anyhow::Result<String> {
         let values: Vec<String> = plan.points[r.point].iter().map(show).collect();
         let _ = writeln!(
             md,
-            "| {:04} | {} | {} | {} | {} % | {} % | {} s |",
+            "| {:04} | {} | {} | {} | {} % | {} % | {} |",
             r.point,
             values.join(" | "),
             r.policy,
@@ -494,9 +494,17 @@ fn plot(plan: &Plan, i: usize, rows: &[Row]) -> String {
             .or_else(|| v.as_integer().map(|n| n as f64))
             .unwrap_or(k as f64)
     };
-    let pts: Vec<(usize, f64, (f64, f64, f64))> = rows
+    // Each row's policy, x and metric (rows without the metric, e.g. no time per suture
+    // where nothing was sutured, are left out).
+    let pts: Vec<(&str, f64, (f64, f64, f64))> = rows
         .iter()
-        .filter_map(|r| Some((r.point, x_of(r.point), metric_of(&r.metrics, &plan.metric)?)))
+        .filter_map(|r| {
+            Some((
+                r.policy.as_str(),
+                x_of(r.point),
+                metric_of(&r.metrics, &plan.metric)?,
+            ))
+        })
         .collect();
     let policies: Vec<&str> = {
         let mut p: Vec<&str> = Vec::new();
@@ -557,11 +565,10 @@ fn plot(plan: &Plan, i: usize, rows: &[Row]) -> String {
     for (p, name) in policies.iter().enumerate() {
         let c = crate::trials::COLORS[p % crate::trials::COLORS.len()];
         let color = format!("rgb({},{},{})", c[0], c[1], c[2]);
-        let mut mine: Vec<(f64, (f64, f64, f64))> = rows
+        let mut mine: Vec<(f64, (f64, f64, f64))> = pts
             .iter()
-            .zip(&pts)
-            .filter(|(r, _)| r.policy == *name)
-            .map(|(_, &(_, x, m))| (x, m))
+            .filter(|(policy, _, _)| policy == name)
+            .map(|&(_, x, m)| (x, m))
             .collect();
         mine.sort_by(|a, b| a.0.total_cmp(&b.0));
         let line: Vec<String> = mine
