@@ -5,7 +5,6 @@
 mod support;
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
 use support::{stitch_at_root as stitch, text};
 
 fn dir(name: &str) -> PathBuf {
@@ -285,17 +284,13 @@ fn a_local_ray_cluster_runs_a_sharded_sweep_and_merges_the_same_bytes() {
         one.to_str().expect("utf-8"),
     ]);
     let (work, merged) = (dir("ray-work"), dir("ray-merged"));
-    let o = Command::new(support::python())
-        .arg(support::root().join("cluster/ray_trials.py"))
-        .args(["--stitch", env!("CARGO_BIN_EXE_stitch"), "--shards", "2"])
-        .args(["--work", work.to_str().expect("utf-8")])
-        .args(["--out", merged.to_str().expect("utf-8")])
-        .args(["--sweep", s.to_str().expect("utf-8"), "--chaos", "1"])
-        .current_dir(support::root())
-        .output()
-        .expect("python runs the Ray driver");
-    let (out, err) = (text(&o.stdout), text(&o.stderr));
-    assert_eq!(o.status.code(), Some(0), "{out}\n{err}");
+    let (code, out, err) = support::ray_driver(
+        2,
+        &work,
+        &merged,
+        &["--sweep", s.to_str().expect("utf-8"), "--chaos", "1"],
+    );
+    assert_eq!(code, Some(0), "{out}\n{err}");
     assert!(
         work.join("chaos-1").exists(),
         "shard 1 failed once: {out}\n{err}"

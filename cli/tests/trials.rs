@@ -5,7 +5,6 @@
 mod support;
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
 use support::{stitch_at_root as stitch, text};
 
 fn dir(name: &str) -> PathBuf {
@@ -398,19 +397,14 @@ fn a_local_ray_cluster_runs_the_shards_retries_a_failed_one_and_merges_the_same_
     let one = dir("ray-one");
     run_ok(&[&["trials"][..], &args].concat(), &one);
     let (work, merged) = (dir("ray-work"), dir("ray-merged"));
-    let o = Command::new(support::python())
-        .arg(support::root().join("cluster/ray_trials.py"))
-        .args(["--stitch", env!("CARGO_BIN_EXE_stitch"), "--shards", "3"])
-        .args(["--work", work.to_str().expect("utf-8")])
-        .args(["--out", merged.to_str().expect("utf-8")])
-        // Shard 2's first try fails: Ray runs it again.
-        .args(["--chaos", "2", "--"])
-        .args(args)
-        .current_dir(support::root())
-        .output()
-        .expect("python runs the Ray driver");
-    let (out, err) = (text(&o.stdout), text(&o.stderr));
-    assert_eq!(o.status.code(), Some(0), "{out}\n{err}");
+    // Shard 2's first try fails: Ray runs it again.
+    let (code, out, err) = support::ray_driver(
+        3,
+        &work,
+        &merged,
+        &[&["--chaos", "2", "--"][..], &args].concat(),
+    );
+    assert_eq!(code, Some(0), "{out}\n{err}");
     assert!(
         work.join("chaos-2").exists(),
         "shard 2 failed once: {out}\n{err}"

@@ -23,6 +23,28 @@ pub fn stitch_at_root(args: &[&str]) -> std::process::Output {
         .expect("the stitch binary runs")
 }
 
+/// `cluster/ray_trials.py` on a local Ray instance: `shards` shards into `work`, merged into
+/// `out`, with `extra` arguments (`--chaos K`, `--sweep FILE` or `-- TRIALS-ARGS`); exit
+/// code, stdout, stderr.
+pub fn ray_driver(
+    shards: u32,
+    work: &Path,
+    out: &Path,
+    extra: &[&str],
+) -> (Option<i32>, String, String) {
+    let o = Command::new(python())
+        .arg(root().join("cluster/ray_trials.py"))
+        .args(["--stitch", env!("CARGO_BIN_EXE_stitch")])
+        .args(["--shards", &shards.to_string()])
+        .args(["--work", work.to_str().expect("utf-8")])
+        .args(["--out", out.to_str().expect("utf-8")])
+        .args(extra)
+        .current_dir(root())
+        .output()
+        .expect("python runs the Ray driver");
+    (o.status.code(), text(&o.stdout), text(&o.stderr))
+}
+
 /// Bytes a process wrote, as text.
 pub fn text(b: &[u8]) -> String {
     String::from_utf8_lossy(b).into_owned()
