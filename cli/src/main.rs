@@ -31,8 +31,8 @@ use std::process::ExitCode;
 use std::sync::Arc;
 use stitch_cli::inputs::MockConfig;
 use stitch_engine::{
-    ExploreOptions, Loaded, OutcomeSchedule, PlanErrors, PlanLoader, Report, RunOutcome, Runner,
-    ScriptLimits, ScriptedSupervisor, TimedCommand, explore, mermaid, validate,
+    ExploreOptions, Loaded, OutcomeSchedule, ParamValue, Params, PlanErrors, PlanLoader, Report,
+    RunOutcome, Runner, ScriptLimits, ScriptedSupervisor, TimedCommand, explore, mermaid, validate,
 };
 use stitch_primitives::{
     MockPerception, OutcomeModel, RobotPrimitives, ScriptedPrimitives, mock_primitives_observed,
@@ -100,6 +100,8 @@ enum Command {
         diagram: Option<PathBuf>,
         #[command(flatten)]
         wound: WoundArgs,
+        #[command(flatten)]
+        params: ParamArgs,
     },
     /// Validate and run a plan; print a per-throw timeline and the final outcome.
     #[command(after_help = EXIT_CODES)]
@@ -183,6 +185,8 @@ enum Command {
         skip_validation: bool,
         #[command(flatten)]
         wound: WoundArgs,
+        #[command(flatten)]
+        params: ParamArgs,
     },
     /// The stereo needle pipeline on a pair of images: the pose, the disparity, or a
     /// rendered pair to try them on.
@@ -321,6 +325,29 @@ impl WoundArgs {
     }
 }
 
+/// `--param NAME=VALUE`: values for the plan's `param(name, default)` calls.
+#[derive(Debug, Default, clap::Args)]
+pub(crate) struct ParamArgs {
+    /// Set the plan's parameter NAME (its `param("NAME", default)`) to VALUE, read as the
+    /// default's type (integer, number, true/false or text); repeat for more. A parameter
+    /// the plan does not declare is refused.
+    #[arg(long = "param", value_name = "NAME=VALUE", value_parser = stitch_engine::parse_param_arg)]
+    params: Vec<(String, ParamValue)>,
+}
+
+impl ParamArgs {
+    /// The values by name; a name given twice is refused.
+    pub(crate) fn get(&self) -> anyhow::Result<Params> {
+        let mut out = Params::new();
+        for (k, v) in &self.params {
+            if out.insert(k.clone(), v.clone()).is_some() {
+                anyhow::bail!("--param {k} is given twice");
+            }
+        }
+        Ok(out)
+    }
+}
+
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 pub(crate) enum RobotKind {
     /// The embedded mock dVRK: two kinematic PSMs, the needle, the tissue phantom, the
@@ -385,12 +412,16 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
             plan,
             explore: false,
             wound,
+            params,
             ..
         } => {
-            let Some(loaded) = load(&plan, &wound.apply(WoundSpec::default()))? else {
+            let given = params.get()?;
+            let Some(loaded) = load(&plan, &wound.apply(WoundSpec::default()), &given, true)?
+            else {
                 return Ok(exit::INVALID_PLAN);
             };
             print!("{}", show::plan_tree(&loaded.plan));
+            print!("{}", show::params(&loaded));
             println!("valid: {} throws, nothing ran", loaded.plan.throws.len());
             Ok(exit::OK)
         }
@@ -401,8 +432,11 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
             counterexample,
             diagram,
             wound,
+            params,
         } => {
-            let (loaded, errors) = evaluate(&plan, &wound.apply(WoundSpec::default()))?;
+            let given = params.get()?;
+            let (loaded, errors) =
+                evaluate(&plan, &wound.apply(WoundSpec::default()), &given, true)?;
             if let Some(errors) = &errors {
                 eprintln!("{errors}");
             }
@@ -479,6 +513,7 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
             json,
             skip_validation,
             wound,
+            params,
             perception,
             segmenter,
             mock_config,
@@ -547,15 +582,16 @@ fn run(cli: Cli) -> anyhow::Result<u8> {
             let mut mock = read_mock_config(mock_config.as_deref())?;
             mock.scene.wound = wound.apply(mock.scene.wound.clone());
             let spec = mock.scene.wound.clone();
+            let given = params.get()?;
             let loaded = if skip_validation && robot == RobotKind::Scripted {
-                let (loaded, errors) = evaluate(&plan, &spec)?;
+                let (loaded, errors) = evaluate(&plan, &spec, &given, true)?;
                 if let Some(errors) = errors {
                     eprintln!("{errors}");
                     eprintln!("running anyway (--skip-validation, scripted robot: nothing moves)");
                 }
                 loaded
             } else {
-                load(&plan, &spec)?
+                load(&plan, &spec, &given, true)?
             };
             let Some(loaded) = loaded else {
                 return Ok(exit::INVALID_PLAN);
@@ -913,14 +949,33 @@ fn run_ros2(
     )
 }
 
-/// Load and validate; print plan errors one per line and return `None` if invalid.
-fn load(path: &Path, wound: &WoundSpec) -> anyhow::Result<Option<Loaded>> {
-    let (loaded, errors) = evaluate(path, wound)?;
+/// Load and validate with `params` as the values of its `param` calls (with `all_used`, a
+/// value the plan does not ask for is an error); print plan errors one per line and return
+/// `None` if invalid.
+fn load(
+    path: &Path,
+    wound: &WoundSpec,
+    params: &Params,
+    all_used: bool,
+) -> anyhow::Result<Option<Loaded>> {
+    let (loaded, errors) = evaluate(path, wound, params, all_used)?;
     if let Some(errors) = errors {
         eprintln!("{errors}");
         return Ok(None);
     }
     Ok(loaded)
+}
+
+/// The parameters a plan declares, for an error message.
+pub(crate) fn declared_params(loaded: &Loaded) -> String {
+    if loaded.params.is_empty() {
+        "it has no param(\"name\", default) calls".into()
+    } else {
+        format!(
+            "its parameters: {}",
+            loaded.params.keys().cloned().collect::<Vec<_>>().join(", ")
+        )
+    }
 }
 
 /// The start and end markers of the generated diagram in a Markdown file.
@@ -943,10 +998,15 @@ fn write_diagram(file: &Path, diagram: &str) -> anyhow::Result<()> {
 }
 
 /// Evaluate the script; validate the plan if it evaluated. Evaluation errors leave no plan.
-fn evaluate(path: &Path, spec: &WoundSpec) -> anyhow::Result<(Option<Loaded>, Option<PlanErrors>)> {
+fn evaluate(
+    path: &Path,
+    spec: &WoundSpec,
+    params: &Params,
+    all_used: bool,
+) -> anyhow::Result<(Option<Loaded>, Option<PlanErrors>)> {
     let wound =
         Wound::linear(spec).context("invalid wound (--wound-points, --wound-spacing-mm)")?;
-    let loader = PlanLoader::new(&wound, ScriptLimits::default());
+    let loader = PlanLoader::new(&wound, ScriptLimits::default()).with_params(params.clone());
     let source = std::fs::read_to_string(path)
         .with_context(|| format!("cannot read the plan {}", path.display()))?;
     let loaded = match loader.eval_str(&path.display().to_string(), &source) {
@@ -955,6 +1015,14 @@ fn evaluate(path: &Path, spec: &WoundSpec) -> anyhow::Result<(Option<Loaded>, Op
     };
     for line in &loaded.printed {
         eprintln!("{}: {line}", path.display());
+    }
+    if all_used && !loaded.unused_params.is_empty() {
+        anyhow::bail!(
+            "--param {}: {} declares no such parameter ({})",
+            loaded.unused_params.join(", "),
+            path.display(),
+            declared_params(&loaded)
+        );
     }
     let errors = validate(&loaded.plan).err();
     Ok((Some(loaded), errors))

@@ -63,6 +63,14 @@ pub fn run_info(s: &RunSettings<'_>) -> anyhow::Result<RunInfo> {
             .join(","),
     );
     settings.insert("record_frames_hz".to_string(), s.frames_hz.to_string());
+    // The values of the plan's parameters, which `stitch replay` gives it again (only when it
+    // has any: a plan without parameters records what it always did).
+    if !s.loaded.plan.params.is_empty() {
+        settings.insert(
+            "params".to_string(),
+            serde_json::to_string(&s.loaded.plan.params)?,
+        );
+    }
     let mut files = Vec::new();
     if let Some(p) = s.outcomes {
         files.push((

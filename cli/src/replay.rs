@@ -213,7 +213,8 @@ pub fn replay(args: &ReplayArgs) -> anyhow::Result<u8> {
         .map(|text| OutcomeSchedule::from_json(OUTCOMES, &text))
         .transpose()?;
     let seed = rec.seed()?;
-    let loaded = load(&plan_file, &plan_text, &wound)?;
+    let params = recorded_params(&rec)?;
+    let loaded = load(&plan_file, &plan_text, &wound, &params)?;
     let out = args.out.clone().unwrap_or_else(|| {
         std::env::temp_dir().join(format!("stitch-replay-{}.mcap", std::process::id()))
     });
@@ -268,9 +269,26 @@ pub fn replay(args: &ReplayArgs) -> anyhow::Result<u8> {
     })
 }
 
-fn load(file: &str, text: &str, wound: &WoundSpec) -> anyhow::Result<Loaded> {
+/// The values of the plan's parameters the recording was made with (none before they
+/// existed).
+fn recorded_params(rec: &Recording) -> anyhow::Result<stitch_engine::Params> {
+    rec.meta.get("params").map_or_else(
+        || Ok(stitch_engine::Params::new()),
+        |text| {
+            serde_json::from_str(text)
+                .with_context(|| format!("{}: the recorded params", rec.file.display()))
+        },
+    )
+}
+
+fn load(
+    file: &str,
+    text: &str,
+    wound: &WoundSpec,
+    params: &stitch_engine::Params,
+) -> anyhow::Result<Loaded> {
     let w = Wound::linear(wound).context("the recorded wound")?;
-    let loader = PlanLoader::new(&w, ScriptLimits::default());
+    let loader = PlanLoader::new(&w, ScriptLimits::default()).with_params(params.clone());
     let loaded = loader
         .eval_str(file, text)
         .map_err(|e| anyhow::anyhow!("the recorded plan: {e}"))?;
@@ -694,7 +712,7 @@ fn what_if(rec: &Recording, other: &Path) -> anyhow::Result<u8> {
     };
     let text = std::fs::read_to_string(other)
         .with_context(|| format!("cannot read the plan {}", other.display()))?;
-    let loaded = load(&other.display().to_string(), &text, &wound)?;
+    let loaded = load(&other.display().to_string(), &text, &wound, &recorded_params(rec)?)?;
     let clock = SimClock::new();
     let ran_out = std::rc::Rc::new(std::cell::RefCell::new(RanOut::default()));
     let mut primitives = RecordedOutcomes {
@@ -817,7 +835,7 @@ pub(crate) fn playback(file: &Path) -> anyhow::Result<Playback> {
         .with_context(|| format!("{}: no plan.rhai attachment", file.display()))?;
     let wound: WoundSpec = serde_json::from_str(rec.get("wound")?)
         .with_context(|| format!("{}: the recorded wound", file.display()))?;
-    let plan = load(&plan_file, &plan_text, &wound)?.plan;
+    let plan = load(&plan_file, &plan_text, &wound, &recorded_params(&rec)?)?.plan;
     let left: Vec<u16> = rec
         .got
         .channels

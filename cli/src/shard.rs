@@ -296,6 +296,12 @@ pub fn merge_quiet(dirs: &[PathBuf], out: &Path) -> anyhow::Result<String> {
             .as_str()
             .unwrap_or_default()
             .to_string(),
+        params: settings["policies"]
+            .as_array()
+            .into_iter()
+            .flatten()
+            .map(|p| serde_json::from_value(p["params"].clone()).unwrap_or_default())
+            .collect(),
         policies,
     };
     let table = crate::trials::write_results(out, &summary, &records)?;

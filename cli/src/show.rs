@@ -11,6 +11,24 @@ fn mm(p: &stitch_robot::Point) -> String {
 }
 
 /// The plan as an indented tree, with each step's parameters in units and its script line.
+/// The plan's parameters, one line each with where its value came from ("" if none).
+pub fn params(loaded: &stitch_engine::Loaded) -> String {
+    let mut s = String::new();
+    for (name, p) in &loaded.params {
+        let _ = writeln!(
+            s,
+            "param {name} = {}  ({})",
+            p.value,
+            if p.given {
+                format!("given; default {}", p.default)
+            } else {
+                "default".into()
+            }
+        );
+    }
+    s
+}
+
 pub fn plan_tree(plan: &Plan) -> String {
     let mut s = String::new();
     let _ = writeln!(

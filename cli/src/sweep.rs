@@ -71,7 +71,8 @@ struct Spec {
     /// three_throw_success, full_wound_success or mean_time_per_suture_s.
     #[serde(default = "default_metric")]
     metric: String,
-    /// Every combination of these values (keys are dotted mock configuration keys).
+    /// Every combination of these values (keys are dotted mock configuration keys, or
+    /// `param.NAME` for the plans' `param("NAME", default)`).
     #[serde(default)]
     grid: BTreeMap<String, Vec<toml::Value>>,
     /// Or a seeded uniform sample.
@@ -196,7 +197,38 @@ fn points(spec: &Spec) -> anyhow::Result<Plan> {
     })
 }
 
-/// `base` with each dotted key set to its value.
+/// The prefix of a sweep key that names a plan parameter rather than a mock key.
+const PARAM: &str = "param.";
+
+/// A point's plan parameters: its `param.NAME` keys' values.
+fn params_of(keys: &[String], values: &[toml::Value]) -> anyhow::Result<stitch_engine::Params> {
+    use stitch_engine::ParamValue as V;
+    let mut out = stitch_engine::Params::new();
+    for (key, value) in keys.iter().zip(values) {
+        let Some(name) = key.strip_prefix(PARAM) else {
+            continue;
+        };
+        if !stitch_engine::valid_param_name(name) {
+            bail!(
+                "{key:?}: a parameter's name is ASCII letters, digits and _, not starting with \
+                 a digit"
+            );
+        }
+        let v = match value {
+            toml::Value::Integer(i) => V::Int(*i),
+            toml::Value::Float(x) => V::Float(*x),
+            toml::Value::Boolean(b) => V::Bool(*b),
+            toml::Value::String(s) => V::Text(s.clone()),
+            other => bail!(
+                "{key} = {other}: a parameter's value is an integer, number, boolean or string"
+            ),
+        };
+        out.insert(name.to_string(), v);
+    }
+    Ok(out)
+}
+
+/// `base` with each dotted mock key (not the `param.` ones) set to its value.
 fn with_keys(
     base: &toml::Table,
     keys: &[String],
@@ -204,6 +236,9 @@ fn with_keys(
 ) -> anyhow::Result<toml::Table> {
     let mut t = base.clone();
     for (key, value) in keys.iter().zip(values) {
+        if key.starts_with(PARAM) {
+            continue;
+        }
         let parts: Vec<&str> = key.split('.').collect();
         if parts.iter().any(|p| p.is_empty()) {
             bail!("{key:?} is not a dotted key (e.g. sensing.p_dropout_thread)");
@@ -257,20 +292,40 @@ pub fn sweep(args: SweepArgs) -> anyhow::Result<u8> {
                 .with_context(|| format!("invalid mock configuration {}", p.display()))?
         }
     };
-    // Every point's configuration, checked before anything runs.
+    // Every point's configuration and parameters, checked before anything runs (the
+    // parameters' types and names when the point's trials load the policies).
     let mut configs = Vec::new();
     for (k, values) in plan.points.iter().enumerate() {
         let table = with_keys(&base, &plan.keys, values)
             .with_context(|| format!("{}: point {k}", spec_path.display()))?;
         let text = toml::to_string(&table)?;
-        crate::read_mock_text(&text).with_context(|| {
+        let mock = crate::read_mock_text(&text).with_context(|| {
             format!(
                 "{}: point {k} ({}) is not a valid mock configuration",
                 spec_path.display(),
                 describe(&plan.keys, values)
             )
         })?;
-        configs.push(text);
+        let params = params_of(&plan.keys, values)
+            .with_context(|| format!("{}: point {k}", spec_path.display()))?;
+        if !params.is_empty() {
+            let loaded = crate::trials::load_policies(&spec.policies, &mock.scene.wound, &params)
+                .with_context(|| {
+                    format!(
+                        "{}: point {k} ({})",
+                        spec_path.display(),
+                        describe(&plan.keys, values)
+                    )
+                })?;
+            if loaded.is_none() {
+                bail!(
+                    "{}: point {k} ({}): a policy's plan is invalid with these parameters",
+                    spec_path.display(),
+                    describe(&plan.keys, values)
+                );
+            }
+        }
+        configs.push((text, params));
     }
     std::fs::create_dir_all(&out).with_context(|| format!("cannot create {}", out.display()))?;
     write(
@@ -278,12 +333,12 @@ pub fn sweep(args: SweepArgs) -> anyhow::Result<u8> {
         &(serde_json::to_string_pretty(&plan)? + "\n"),
     )?;
     let started = std::time::Instant::now();
-    for (k, config) in configs.iter().enumerate() {
+    for (k, (config, params)) in configs.into_iter().enumerate() {
         let dir = point_dir(&out, k);
         std::fs::create_dir_all(&dir)
             .with_context(|| format!("cannot create {}", dir.display()))?;
         let mock = dir.join("mock.toml");
-        write(&mock, config)?;
+        write(&mock, &config)?;
         eprintln!(
             "point {}/{}: {}",
             k + 1,
@@ -299,7 +354,9 @@ pub fn sweep(args: SweepArgs) -> anyhow::Result<u8> {
             perception,
             mock,
             args.shard,
-        ))?;
+            params,
+        ))
+        .with_context(|| format!("point {k} ({})", describe(&plan.keys, &plan.points[k])))?;
         if code != crate::exit::OK {
             return Ok(code);
         }

@@ -64,6 +64,10 @@ pub struct TrialsArgs {
     /// at simulated times, mid-step included. Without it, none (the paper's trials).
     #[arg(long, value_name = "FILE")]
     commands: Option<PathBuf>,
+    /// Plan parameters, as `stitch run --param`, given to every policy; each must be declared
+    /// by at least one policy (trials.json lists what each policy ran with).
+    #[command(flatten)]
+    params: crate::ParamArgs,
 }
 
 /// `stitch trials merge`.
@@ -132,7 +136,7 @@ fn paper_row(name: &str) -> Option<PaperRow> {
 /// One trial's outcome as a worker leaves it (its journal already written).
 type TrialResult = anyhow::Result<TrialRecord>;
 
-struct Policy {
+pub(crate) struct Policy {
     /// As given on the command line (file names use it).
     key: String,
     /// The plan's mission name.
@@ -156,6 +160,8 @@ pub struct Run {
     pub journal_format: JournalFormat,
     pub record_frames: f64,
     pub commands: Option<PathBuf>,
+    /// Values for the policies' `param(name, default)` calls.
+    pub params: stitch_engine::Params,
     /// Print no table (a sweep prints its own).
     pub quiet: bool,
 }
@@ -172,6 +178,7 @@ impl Run {
         perception: PerceptionKind,
         mock_config: PathBuf,
         shard: Option<crate::shard::Shard>,
+        params: stitch_engine::Params,
     ) -> Self {
         Self {
             trials,
@@ -185,6 +192,7 @@ impl Run {
             journal_format: JournalFormat::Mcap,
             record_frames: 0.0,
             commands: None,
+            params,
             quiet: true,
         }
     }
@@ -206,6 +214,7 @@ pub fn trials(args: TrialsArgs) -> anyhow::Result<u8> {
         journal_format: args.journal_format,
         record_frames: args.record_frames,
         commands: args.commands,
+        params: args.params.get()?,
         quiet: false,
     })
 }
@@ -231,33 +240,9 @@ pub fn run(args: Run) -> anyhow::Result<u8> {
     if let Some(path) = &args.commands {
         crate::read_commands(path)?;
     }
-    let mut policies = Vec::new();
-    for key in &args.policies {
-        let path = if key.ends_with(".rhai") {
-            PathBuf::from(key)
-        } else {
-            Path::new("scripts").join(format!("{key}.rhai"))
-        };
-        if !path.is_file() {
-            anyhow::bail!(
-                "unknown policy {key:?}: no {} (the policies are the scripts in scripts/: {})",
-                path.display(),
-                DEFAULT_POLICIES.join(", ")
-            );
-        }
-        let Some(loaded) = crate::load(&path, &mock.scene.wound)? else {
-            return Ok(exit::INVALID_PLAN);
-        };
-        let key = path
-            .file_stem()
-            .map_or_else(|| key.clone(), |s| s.to_string_lossy().into_owned());
-        policies.push(Policy {
-            key,
-            name: loaded.plan.name.clone(),
-            loaded,
-            path,
-        });
-    }
+    let Some(policies) = load_policies(&args.policies, &mock.scene.wound, &args.params)? else {
+        return Ok(exit::INVALID_PLAN);
+    };
     std::fs::create_dir_all(out.join("journals"))
         .with_context(|| format!("cannot create {}", out.display()))?;
     if args.record_frames != 0.0 && args.journal_format != JournalFormat::Mcap {
@@ -360,6 +345,7 @@ pub fn run(args: Run) -> anyhow::Result<u8> {
         trials: args.trials,
         perception: perception_name(args.perception),
         policies: policies.iter().map(|p| p.name.clone()).collect(),
+        params: policies.iter().map(|p| p.loaded.plan.params.clone()).collect(),
     };
     let table = write_results(&out, &summary, &records)?;
     if !args.quiet {
@@ -369,8 +355,58 @@ pub fn run(args: Run) -> anyhow::Result<u8> {
     Ok(exit::OK)
 }
 
+/// The policies' plans, evaluated with `params` and validated (`None`, errors printed, if a
+/// plan is invalid); a parameter no policy declares is refused.
+pub(crate) fn load_policies(
+    keys: &[String],
+    wound: &stitch_robot::WoundSpec,
+    params: &stitch_engine::Params,
+) -> anyhow::Result<Option<Vec<Policy>>> {
+    let mut policies = Vec::new();
+    for key in keys {
+        let path = if key.ends_with(".rhai") {
+            PathBuf::from(key)
+        } else {
+            Path::new("scripts").join(format!("{key}.rhai"))
+        };
+        if !path.is_file() {
+            anyhow::bail!(
+                "unknown policy {key:?}: no {} (the policies are the scripts in scripts/: {})",
+                path.display(),
+                DEFAULT_POLICIES.join(", ")
+            );
+        }
+        let Some(loaded) = crate::load(&path, wound, params, false)? else {
+            return Ok(None);
+        };
+        let key = path
+            .file_stem()
+            .map_or_else(|| key.clone(), |s| s.to_string_lossy().into_owned());
+        policies.push(Policy {
+            key,
+            name: loaded.plan.name.clone(),
+            loaded,
+            path,
+        });
+    }
+    // A value no policy asks for would change nothing: refused, not silently ignored.
+    for name in params.keys() {
+        if policies.iter().all(|p| !p.loaded.params.contains_key(name)) {
+            anyhow::bail!(
+                "--param {name}: no policy declares it ({})",
+                policies
+                    .iter()
+                    .map(|p| format!("{}: {}", p.key, crate::declared_params(&p.loaded)))
+                    .collect::<Vec<_>>()
+                    .join("; ")
+            );
+        }
+    }
+    Ok(Some(policies))
+}
+
 /// What the results' files say about the run besides its records.
-#[derive(Clone, Debug, PartialEq, Eq)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct Summary {
     /// The first trial's seed.
     pub seed: u64,
@@ -380,6 +416,8 @@ pub struct Summary {
     pub perception: String,
     /// The policies' plan names, in their order.
     pub policies: Vec<String>,
+    /// Each policy's parameters (`param(name, default)`) as it ran with them, in that order.
+    pub params: Vec<stitch_engine::Params>,
 }
 
 fn perception_name(p: PerceptionKind) -> String {
@@ -403,6 +441,7 @@ fn settings(args: &Run, policies: &[Policy]) -> anyhow::Result<serde_json::Value
             "key": p.key,
             "name": p.name,
             "plan_sha256": hash(&p.path)?,
+            "params": p.loaded.plan.params,
         }));
     }
     Ok(serde_json::json!({
@@ -439,7 +478,7 @@ pub fn write_results(
     let table = table_md(&all, summary);
     write("table.md", table.as_bytes())?;
     write("trials.csv", csv(records).as_bytes())?;
-    let json = serde_json::json!({
+    let mut json = serde_json::json!({
         "seed": summary.seed,
         "trials_per_policy": summary.trials,
         "perception": summary.perception,
@@ -447,6 +486,17 @@ pub fn write_results(
         "metrics": all,
         "trials": records.iter().flatten().collect::<Vec<_>>(),
     });
+    // Only where a policy has parameters: a run without them writes what it always did.
+    if summary.params.iter().any(|p| !p.is_empty()) {
+        json["params"] = serde_json::Value::Array(
+            summary
+                .policies
+                .iter()
+                .zip(&summary.params)
+                .map(|(name, p)| serde_json::json!({ "policy": name, "params": p }))
+                .collect(),
+        );
+    }
     write(
         "trials.json",
         (serde_json::to_string_pretty(&json)? + "\n").as_bytes(),
@@ -546,6 +596,12 @@ fn table_md(all: &[Metrics], args: &Summary) -> String {
         args.seed,
         args.perception
     );
+    for (name, params) in args.policies.iter().zip(&args.params) {
+        if !params.is_empty() {
+            let values: Vec<String> = params.iter().map(|(k, v)| format!("{k} = {v}")).collect();
+            let _ = writeln!(s, "Parameters of {name}: {}.\n", values.join(", "));
+        }
+    }
     s += "| policy | mean sutures to failure | single-suture success | three-throw success | full-wound success | mean time per suture | I | E | H | T | mean sutures to intervention |\n|---|---|---|---|---|---|---|---|---|---|---|\n";
     for m in all {
         let _ = writeln!(

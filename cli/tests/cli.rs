@@ -436,3 +436,57 @@ fn the_supervision_benchmark_measures_pauses_during_motions() {
         "{mock}"
     );
 }
+
+#[test]
+fn plan_parameters_are_shown_checked_and_refused_with_the_reason() {
+    let out = stitch(&[
+        "check",
+        "scripts/stitch_thread.rhai",
+        "--param",
+        "max_sweeps=3",
+    ]);
+    assert_eq!(out.status.code(), Some(0), "{}", text(&out.stderr));
+    let s = text(&out.stdout);
+    assert!(s.contains("param max_sweeps = 3  (given; default 2)"), "{s}");
+    assert!(s.contains("param clearance_mm = 4.0  (default)"), "{s}");
+    assert!(s.contains("repeat at most 3 times"), "the value reached the plan: {s}");
+    for (args, code, why) in [
+        (
+            vec!["check", "scripts/stitch_thread.rhai", "--param", "max_sweep=3"],
+            1,
+            "--param max_sweep: scripts/stitch_thread.rhai declares no such parameter (its parameters: clearance_mm, max_sweeps)",
+        ),
+        (
+            vec!["run", "scripts/stitch.rhai", "--param", "max_sweeps=3"],
+            1,
+            "declares no such parameter (it has no param(\"name\", default) calls)",
+        ),
+        (
+            vec!["run", "scripts/stitch_thread.rhai", "--param", "max_sweeps=2.5"],
+            3,
+            "scripts/stitch_thread.rhai:18:",
+        ),
+        (
+            vec![
+                "check",
+                "scripts/stitch_thread.rhai",
+                "--param",
+                "max_sweeps=3",
+                "--param",
+                "max_sweeps=4",
+            ],
+            1,
+            "--param max_sweeps is given twice",
+        ),
+        (
+            vec!["check", "scripts/stitch_thread.rhai", "--param", "max_sweeps"],
+            2,
+            "expected NAME=VALUE",
+        ),
+    ] {
+        let out = stitch(&args);
+        let said = text(&out.stderr);
+        assert_eq!(out.status.code(), Some(code), "{args:?}: {said}");
+        assert!(said.contains(why), "{args:?}: expected {why:?} in {said}");
+    }
+}

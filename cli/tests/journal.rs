@@ -650,3 +650,49 @@ fn a_run_over_ros2_killed_mid_throw_keeps_its_journal_to_the_last_quarter_second
     assert_eq!(again.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&again.stderr).contains("--plan OTHER.rhai"));
 }
+
+#[test]
+fn a_plan_run_with_parameters_records_them_and_replays_with_them() {
+    let args = [
+        "--seed",
+        "3",
+        "--wound-points",
+        "3",
+        "--param",
+        "clearance_mm=8",
+        "--param",
+        "max_sweeps=3",
+    ];
+    let path = record_plan("params.mcap", "scripts/stitch_thread.rhai", &args);
+    // The values are in the run's metadata and in the journal's first record.
+    let exported = export(&path);
+    let first: serde_json::Value =
+        serde_json::from_str(exported.lines().next().expect("a first record")).expect("JSON");
+    assert_eq!(
+        first["params"],
+        serde_json::json!({ "clearance_mm": 8.0, "max_sweeps": 3 }),
+        "{first}"
+    );
+    let rec = stitch_recorder::read(&path).expect("readable");
+    let meta = &rec
+        .metadata
+        .iter()
+        .find(|(n, _)| n == "stitch_run")
+        .expect("stitch_run")
+        .1;
+    assert_eq!(meta["params"], r#"{"clearance_mm":8.0,"max_sweeps":3}"#);
+    // They decided the run: its conditions compare with 8 mm.
+    assert!(exported.contains("> mm(8)"), "{exported}");
+    // A replay gives the plan the same values (without them it would decide on 4 mm).
+    let out = stitch(&["replay", path.to_str().expect("utf-8")]);
+    let said = String::from_utf8_lossy(&out.stdout);
+    assert_eq!(out.status.code(), Some(0), "{said}");
+    assert!(said.starts_with("identical: "), "{said}");
+    // The same run without them is another run.
+    let plain = record_plan(
+        "params-default.mcap",
+        "scripts/stitch_thread.rhai",
+        &args[..4],
+    );
+    assert!(export(&plain).contains("> mm(4)"));
+}

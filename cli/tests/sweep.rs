@@ -297,3 +297,126 @@ fn a_local_ray_cluster_runs_a_sharded_sweep_and_merges_the_same_bytes() {
     );
     assert_same(&one, &merged);
 }
+
+/// A sweep over the thread-aware policy's parameters beside STITCH, which has none.
+fn params_spec(name: &str, grid: &str) -> PathBuf {
+    let d = dir(name);
+    std::fs::create_dir_all(&d).expect("dir");
+    let path = d.join("sweep.toml");
+    std::fs::write(
+        &path,
+        format!("policies = [\"stitch_thread\", \"stitch\"]\ntrials = 5\nseed = 2\n[grid]\n{grid}"),
+    )
+    .expect("spec");
+    path
+}
+
+#[test]
+fn a_sweep_over_plan_parameters_gives_each_point_its_values_and_merges_the_same_bytes() {
+    let s = params_spec(
+        "params",
+        "\"param.clearance_mm\" = [1.0, 12.0]\n\"param.max_sweeps\" = [1, 3]\n",
+    );
+    let one = dir("params-one");
+    let table = sweep_ok(&[
+        "sweep",
+        s.to_str().expect("utf-8"),
+        "--out",
+        one.to_str().expect("utf-8"),
+    ]);
+    assert!(
+        table.contains("| 0003 | 12.0 | 3 | STITCH, thread-aware |"),
+        "{table}"
+    );
+    let trials = |k: usize| -> serde_json::Value {
+        let p = one.join(format!("points/{k:04}/trials.json"));
+        serde_json::from_str(&std::fs::read_to_string(p).expect("trials.json")).expect("JSON")
+    };
+    for (k, clearance, sweeps) in [(0, 1.0, 1), (1, 1.0, 3), (2, 12.0, 1), (3, 12.0, 3)] {
+        assert_eq!(
+            trials(k)["params"],
+            serde_json::json!([
+                { "policy": "STITCH, thread-aware", "params": { "clearance_mm": clearance, "max_sweeps": sweeps } },
+                { "policy": "STITCH", "params": {} },
+            ]),
+            "point {k}"
+        );
+    }
+    // The values decide the thread-aware runs (a 12 mm clearance sweeps more than 1 mm: more
+    // steps in its trials), and STITCH, which has no parameters, runs the same at every point.
+    let of = |k: usize, policy: &str| -> Vec<serde_json::Value> {
+        trials(k)["trials"]
+            .as_array()
+            .expect("trials")
+            .iter()
+            .filter(|t| t["policy"] == policy)
+            .cloned()
+            .collect()
+    };
+    assert!(of(0, "STITCH") == of(3, "STITCH"));
+    assert!(of(0, "STITCH, thread-aware") != of(3, "STITCH, thread-aware"));
+    let mock = std::fs::read_to_string(one.join("points/0003/mock.toml")).expect("mock.toml");
+    assert!(!mock.contains("param"), "parameters are not mock keys: {mock}");
+
+    // Sharded and merged: the same bytes.
+    let parts: Vec<PathBuf> = (1..=2).map(|k| dir(&format!("params-{k}"))).collect();
+    for (k, d) in (1..=2).zip(&parts) {
+        sweep_ok(&[
+            "sweep",
+            s.to_str().expect("utf-8"),
+            "--shard",
+            &format!("{k}/2"),
+            "--out",
+            d.to_str().expect("utf-8"),
+        ]);
+    }
+    let merged = dir("params-merged");
+    sweep_ok(&[
+        "sweep",
+        "merge",
+        parts[0].to_str().expect("utf-8"),
+        parts[1].to_str().expect("utf-8"),
+        "--out",
+        merged.to_str().expect("utf-8"),
+    ]);
+    assert_same(&one, &merged);
+}
+
+#[test]
+fn bad_plan_parameters_in_a_sweep_are_refused_before_anything_runs() {
+    for (name, grid, why) in [
+        (
+            "params-undeclared",
+            "\"param.sweeps\" = [1]\n",
+            "--param sweeps: no policy declares it (stitch_thread: its parameters: clearance_mm, max_sweeps; stitch: it has no param(\"name\", default) calls)",
+        ),
+        (
+            "params-type",
+            "\"param.max_sweeps\" = [2, \"many\"]\n",
+            "point 1 (param.max_sweeps = many): a policy's plan is invalid with these parameters",
+        ),
+        (
+            "params-name",
+            "\"param.a.b\" = [1]\n",
+            "\"param.a.b\": a parameter's name is ASCII letters",
+        ),
+        (
+            "params-value",
+            "\"param.max_sweeps\" = [[1, 2]]\n",
+            "a parameter's value is an integer, number, boolean or string",
+        ),
+    ] {
+        let s = params_spec(name, grid);
+        let out = dir(&format!("{name}-out"));
+        let o = stitch(&[
+            "sweep",
+            s.to_str().expect("utf-8"),
+            "--out",
+            out.to_str().expect("utf-8"),
+        ]);
+        let said = text(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{grid}: {said}");
+        assert!(said.contains(why), "{grid}: expected {why:?} in {said}");
+        assert!(!out.join("points").exists(), "nothing ran: {grid}");
+    }
+}

@@ -171,6 +171,23 @@ fn bad_trial_arguments_are_refused_with_the_reason() {
     let out = stitch(&["trials", "--seed", "18446744073709551615", "--out", d]);
     assert_eq!(out.status.code(), Some(1));
     assert!(text(&out.stderr).contains("2^64"), "{}", text(&out.stderr));
+    // A plan parameter no policy declares changes nothing: refused, naming what they declare.
+    let out = stitch(&[
+        "trials",
+        "--policies",
+        "stitch,stitch_thread",
+        "--param",
+        "clearance=3",
+        "--out",
+        d,
+    ]);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(
+        text(&out.stderr).contains("--param clearance: no policy declares it (stitch: it has no param(\"name\", default) calls; stitch_thread: its parameters: clearance_mm, max_sweeps)"),
+        "{}",
+        text(&out.stderr)
+    );
+    assert!(!Path::new(d).join("journals").exists(), "nothing ran");
     // An output "directory" that is a file.
     let file = dir("file");
     std::fs::write(&file, "x").expect("write");

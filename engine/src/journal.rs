@@ -92,6 +92,9 @@ pub enum Entry {
         /// The seed that decides a simulated run, if any.
         #[serde(skip_serializing_if = "Option::is_none")]
         seed: Option<u64>,
+        /// The plan's parameters (`param(name, default)`) and the values it was built with.
+        #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+        params: crate::Params,
     },
     /// A state machine transition.
     Transition {

@@ -4,6 +4,7 @@ mod condition;
 mod explore;
 mod journal;
 mod machine;
+mod params;
 mod plan;
 mod reference;
 mod runner;
@@ -27,6 +28,7 @@ pub use plan::{
     BranchRole, FailureClass, NeedleHolder, Node, Op, Plan, PlanError, PlanErrors, SourcePos, Step,
     Throw, caps,
 };
+pub use params::{DeclaredParam, ParamValue, Params, parse_param_arg, valid_param_name};
 pub use reference::{REFERENCE_BEGIN, REFERENCE_END, reference_markdown};
 pub use runner::{
     Attempt, AttemptSink, CheckpointSeen, Decision, PlanHeader, Rebuilt, Report, Runner,

@@ -311,6 +311,10 @@ pub struct Plan {
     pub throws: Vec<Throw>,
     /// Where the script built the mission.
     pub pos: SourcePos,
+    /// The values of the parameters the script declared (`param(name, default)`), as it
+    /// was built with them.
+    #[serde(skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub params: crate::Params,
 }
 
 /// A problem with a plan, at a script position: a syntax error, a sandbox limit, a type or

@@ -147,6 +147,7 @@ impl<'a> Runner<'a> {
             throws: plan.throws.len(),
             interventions: plan.interventions,
             seed,
+            params: plan.params.clone(),
         });
         let throws = vec![ThrowSummary::default(); plan.throws.len()];
         let holders = plan.holders();
@@ -776,6 +777,7 @@ impl Rebuilt {
             throws,
             interventions,
             seed,
+            ..
         }) = records.first().map(|r| &r.entry)
         else {
             return Err("the journal does not begin with its plan record".into());

@@ -8,12 +8,14 @@
 //! and a wall-clock deadline checked through `on_progress`.
 
 use crate::condition::{Cmp, Condition, End, Quantity as Q, Target, Unit};
+use crate::params::{DeclaredParam, ParamState, ParamValue, Params};
 use crate::plan::{Node, Plan, PlanError, SourcePos, Step, Throw, caps};
 use rhai::packages::{
     ArithmeticPackage, BasicArrayPackage, BasicIteratorPackage, BasicMapPackage, BasicMathPackage,
     BasicStringPackage, LogicPackage, Package,
 };
-use rhai::{Array, Dynamic, EvalAltResult, INT, Map, NativeCallContext, Position};
+use rhai::{Array, Dynamic, EvalAltResult, INT, ImmutableString, Map, NativeCallContext, Position};
+use std::collections::BTreeMap;
 use std::path::Path;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -90,6 +92,10 @@ pub const API: &[(&str, &str)] = &[
     ("deg", "deg(number) → angle in degrees"),
     ("rad", "rad(number) → angle in radians"),
     ("wound", "wound() → the wound's points, in suturing order"),
+    (
+        "param",
+        "param(\"name\", default) → the value given with --param name=.. or by a sweep, else default (an integer, number, boolean or string; name the unit: param(\"standoff_mm\", 12))",
+    ),
     ("suture", "suture(wound_point, [steps]) → one suture throw"),
     (
         "mission",
@@ -224,6 +230,7 @@ pub struct PlanLoader {
     engine: rhai::Engine,
     started: Arc<Mutex<Instant>>,
     printed: Arc<Mutex<Vec<String>>>,
+    params: Arc<Mutex<ParamState>>,
 }
 
 /// A plan and what its script printed while building it.
@@ -233,6 +240,11 @@ pub struct Loaded {
     pub plan: Plan,
     /// Lines the script printed with `print`/`debug`.
     pub printed: Vec<String>,
+    /// The parameters the script declared with `param(name, default)`, by name.
+    pub params: BTreeMap<String, DeclaredParam>,
+    /// Parameters given to the loader ([`PlanLoader::with_params`]) that the script never
+    /// asked for: a caller that gave them for this plan should refuse to run it.
+    pub unused_params: Vec<String>,
 }
 
 impl PlanLoader {
@@ -293,14 +305,24 @@ impl PlanLoader {
                 .push(format!("{pos:?}: {s}"));
         });
 
+        let params = Arc::new(Mutex::new(ParamState::default()));
         register_units(&mut engine);
+        register_params(&mut engine, &params);
         register_plan_api(&mut engine, wound.clone());
         register_conditions(&mut engine);
         Self {
             engine,
             started,
             printed,
+            params,
         }
+    }
+
+    /// This loader with `given` as the values of the scripts' `param(name, default)` calls.
+    #[must_use]
+    pub fn with_params(self, given: Params) -> Self {
+        lock(&self.params).given = given;
+        self
     }
 
     /// Evaluate the script at `path` (not validated: see [`crate::load_plan`]).
@@ -324,6 +346,7 @@ impl PlanLoader {
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner)
             .clear();
+        lock(&self.params).declared.clear();
         let at = |pos: Position, message: String| PlanError {
             file: file.to_string(),
             pos: SourcePos::from_rhai(pos),
@@ -355,8 +378,103 @@ impl PlanLoader {
             )
         })?;
         plan.file = file.to_string();
-        Ok(Loaded { plan, printed })
+        let state = lock(&self.params);
+        let params: BTreeMap<String, DeclaredParam> = state
+            .declared
+            .iter()
+            .map(|(name, (default, value))| {
+                let declared = DeclaredParam {
+                    default: default.clone(),
+                    value: value.clone(),
+                    given: state.given.contains_key(name),
+                };
+                (name.clone(), declared)
+            })
+            .collect();
+        let unused_params = state
+            .given
+            .keys()
+            .filter(|k| !state.declared.contains_key(*k))
+            .cloned()
+            .collect();
+        plan.params = params
+            .iter()
+            .map(|(k, p)| (k.clone(), p.value.clone()))
+            .collect();
+        Ok(Loaded {
+            plan,
+            printed,
+            params,
+            unused_params,
+        })
     }
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+/// `param(name, default)`, one overload per type a default may have.
+fn register_params(engine: &mut rhai::Engine, state: &Arc<Mutex<ParamState>>) {
+    let get = |state: &Arc<Mutex<ParamState>>| {
+        let state = Arc::clone(state);
+        move |ctx: &NativeCallContext, name: &str, default: ParamValue| {
+            lock(&state)
+                .get(name, default)
+                .map_err(|e| runtime(ctx, e))
+        }
+    };
+    let f = get(state);
+    engine.register_fn(
+        "param",
+        move |ctx: NativeCallContext, name: ImmutableString, d: INT| -> RhaiResult<INT> {
+            match f(&ctx, &name, ParamValue::Int(d))? {
+                ParamValue::Int(i) => Ok(i),
+                _ => unreachable_type(&ctx),
+            }
+        },
+    );
+    let f = get(state);
+    engine.register_fn(
+        "param",
+        move |ctx: NativeCallContext, name: ImmutableString, d: f64| -> RhaiResult<f64> {
+            match f(&ctx, &name, ParamValue::Float(d))? {
+                ParamValue::Float(x) => Ok(x),
+                _ => unreachable_type(&ctx),
+            }
+        },
+    );
+    let f = get(state);
+    engine.register_fn(
+        "param",
+        move |ctx: NativeCallContext, name: ImmutableString, d: bool| -> RhaiResult<bool> {
+            match f(&ctx, &name, ParamValue::Bool(d))? {
+                ParamValue::Bool(b) => Ok(b),
+                _ => unreachable_type(&ctx),
+            }
+        },
+    );
+    let f = get(state);
+    engine.register_fn(
+        "param",
+        move |ctx: NativeCallContext,
+              name: ImmutableString,
+              d: ImmutableString|
+              -> RhaiResult<ImmutableString> {
+            match f(&ctx, &name, ParamValue::Text(d.to_string()))? {
+                ParamValue::Text(s) => Ok(s.into()),
+                _ => unreachable_type(&ctx),
+            }
+        },
+    );
+}
+
+/// [`ParamState::get`] answers in its default's type; an error rather than a panic if not.
+fn unreachable_type<T>(ctx: &NativeCallContext) -> RhaiResult<T> {
+    Err(runtime(
+        ctx,
+        "param: internal error: the value's type differs from its default's".into(),
+    ))
 }
 
 /// Turn a Rhai evaluation error into a one-line plan error at the innermost position.
@@ -574,6 +692,7 @@ fn register_plan_api(engine: &mut rhai::Engine, wound: Wound) {
             thread_length_m: None,
             throws: Vec::new(),
             pos: SourcePos::from_rhai(ctx.call_position()),
+            params: BTreeMap::new(),
         };
         let mut has_throws = false;
         for (key, value) in map {
@@ -1142,7 +1261,7 @@ fn register_conditions(engine: &mut rhai::Engine) {
     );
     engine.register_fn(
         "checkpoint",
-        |ctx: NativeCallContext, label: rhai::ImmutableString| -> RhaiResult<Block> {
+        |ctx: NativeCallContext, label: ImmutableString| -> RhaiResult<Block> {
             let label = label.trim().to_string();
             if label.is_empty() {
                 return Err(runtime(

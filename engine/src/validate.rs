@@ -446,6 +446,7 @@ mod tests {
                 })
                 .collect(),
             pos: SourcePos { line: 1, col: 1 },
+            params: Default::default(),
         }
     }
 

@@ -402,3 +402,95 @@ fn doubling_strings_and_nesting_arrays_and_maps_are_stopped_within_a_second() {
         );
     }
 }
+
+/// A plan with parameters: the throw count, an insertion angle in degrees, whether to sweep
+/// and the mission's name.
+const PARAMS_PLAN: &str = "fn one(point) {\n\
+    let steps = [insert(#{ rotation: deg(param(\"rotation_deg\", 45.0)) })];\n\
+    if param(\"sweep\", true) { steps.push(sweep()); }\n\
+    steps.push(extract()); steps.push(handover());\n\
+    suture(point, steps)\n\
+}\n\
+let throws = [];\n\
+for i in 0..param(\"throws\", 3) { throws.push(one(wound()[i])); }\n\
+mission(#{ name: param(\"label\", \"P\"), throws: throws })";
+
+#[test]
+fn params_take_their_defaults_or_the_values_given() {
+    use stitch_engine::ParamValue as V;
+    let loaded = load_plan_str(&loader(), "p.rhai", PARAMS_PLAN).expect("valid");
+    assert_eq!(loaded.plan.throws.len(), 3);
+    assert_eq!(loaded.plan.name, "P");
+    assert_eq!(loaded.plan.throws[0].steps().count(), 4);
+    assert!(loaded.params.values().all(|p| !p.given && p.value == p.default));
+    assert_eq!(
+        loaded.plan.params.keys().collect::<Vec<_>>(),
+        ["label", "rotation_deg", "sweep", "throws"]
+    );
+    assert!(loaded.unused_params.is_empty());
+
+    // Given as a command line gives them (text), read as each default's type.
+    let given = [
+        ("throws", "5"),
+        ("rotation_deg", "30"),
+        ("sweep", "false"),
+        ("label", "Q"),
+        ("nobody", "1"),
+    ]
+    .map(|(k, v)| (k.to_string(), V::Text(v.into())))
+    .into_iter()
+    .collect();
+    let loaded =
+        load_plan_str(&loader().with_params(given), "p.rhai", PARAMS_PLAN).expect("valid");
+    assert_eq!(loaded.plan.throws.len(), 5);
+    assert_eq!(loaded.plan.name, "Q");
+    let steps: Vec<_> = loaded.plan.throws[4].steps().map(|(_, s)| s).collect();
+    assert_eq!(steps.len(), 3, "no sweep");
+    match &steps[0].kind {
+        StepKind::Insert(i) => assert!((i.rotation_rad - 30f64.to_radians()).abs() < 1e-12),
+        other => panic!("{other:?}"),
+    }
+    assert_eq!(loaded.plan.params["rotation_deg"], V::Float(30.0));
+    assert_eq!(loaded.plan.params["throws"], V::Int(5));
+    assert!(loaded.params["sweep"].given);
+    assert_eq!(loaded.params["sweep"].default, V::Bool(true));
+    // A value nobody asked for is reported, for the caller to refuse.
+    assert_eq!(loaded.unused_params, ["nobody"]);
+
+    // The same loader evaluates again with the same values: the same plan.
+    let l = loader().with_params([("throws".to_string(), V::Int(2))].into_iter().collect());
+    let a = load_plan_str(&l, "p.rhai", PARAMS_PLAN).expect("valid");
+    let b = load_plan_str(&l, "p.rhai", PARAMS_PLAN).expect("valid");
+    assert_eq!(a, b);
+    assert_eq!(a.plan.throws.len(), 2);
+}
+
+#[test]
+fn a_param_of_the_wrong_type_is_an_error_at_its_call() {
+    use stitch_engine::ParamValue as V;
+    let bad = |name: &str, v: V| {
+        let l = loader().with_params([(name.to_string(), v)].into_iter().collect());
+        let e = load_plan_str(&l, "p.rhai", PARAMS_PLAN).expect_err("refused");
+        let text = e.to_string();
+        assert_eq!(text.lines().count(), 1, "{text}");
+        text
+    };
+    let e = bad("throws", V::Text("2.5".into()));
+    assert!(e.starts_with("p.rhai:8:"), "{e}");
+    assert!(e.contains("\"throws\"") && e.contains("an integer"), "{e}");
+    let e = bad("sweep", V::Text("yes".into()));
+    assert!(e.contains("a boolean"), "{e}");
+    let e = bad("rotation_deg", V::Text("fast".into()));
+    assert!(e.starts_with("p.rhai:2:") && e.contains("a number"), "{e}");
+    let e = bad("label", V::Int(3));
+    assert!(e.contains("a string"), "{e}");
+
+    // A default that is not a plain value says what param takes.
+    let e = error_of("let a = param(\"standoff\", mm(12));\nmission(#{ name: \"x\", throws: [] })");
+    assert!(e.contains("param(\"name\", default)"), "{e}");
+    // Two defaults for one name, and a name that is not one.
+    let e = error_of("let a = param(\"n\", 1);\nlet b = param(\"n\", 2);\nmission(#{ name: \"x\", throws: [] })");
+    assert!(e.starts_with("plan.rhai:2:") && e.contains("declared before"), "{e}");
+    let e = error_of("let a = param(\"a.b\", 1);\nmission(#{ name: \"x\", throws: [] })");
+    assert!(e.contains("ASCII letters"), "{e}");
+}

@@ -32,6 +32,7 @@ fn recording() -> Vec<u8> {
         throws: 1,
         interventions: 0,
         seed: Some(1),
+        params: Default::default(),
     });
     for i in 0..20u64 {
         journal.set_now(std::time::Duration::from_millis(300 * i));
