@@ -76,6 +76,7 @@ pub fn plan_from(templates: &[usize], budgets: Budgets) -> Plan {
         thread_length_m: None,
         throws,
         pos: SourcePos::default(),
+        params: Default::default(),
     }
 }
 

@@ -712,7 +712,12 @@ fn what_if(rec: &Recording, other: &Path) -> anyhow::Result<u8> {
     };
     let text = std::fs::read_to_string(other)
         .with_context(|| format!("cannot read the plan {}", other.display()))?;
-    let loaded = load(&other.display().to_string(), &text, &wound, &recorded_params(rec)?)?;
+    let loaded = load(
+        &other.display().to_string(),
+        &text,
+        &wound,
+        &recorded_params(rec)?,
+    )?;
     let clock = SimClock::new();
     let ran_out = std::rc::Rc::new(std::cell::RefCell::new(RanOut::default()));
     let mut primitives = RecordedOutcomes {

@@ -311,12 +311,12 @@ pub fn sweep(args: SweepArgs) -> anyhow::Result<u8> {
         if !params.is_empty() {
             let loaded = crate::trials::load_policies(&spec.policies, &mock.scene.wound, &params)
                 .with_context(|| {
-                    format!(
-                        "{}: point {k} ({})",
-                        spec_path.display(),
-                        describe(&plan.keys, values)
-                    )
-                })?;
+                format!(
+                    "{}: point {k} ({})",
+                    spec_path.display(),
+                    describe(&plan.keys, values)
+                )
+            })?;
             if loaded.is_none() {
                 bail!(
                     "{}: point {k} ({}): a policy's plan is invalid with these parameters",

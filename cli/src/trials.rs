@@ -345,7 +345,10 @@ pub fn run(args: Run) -> anyhow::Result<u8> {
         trials: args.trials,
         perception: perception_name(args.perception),
         policies: policies.iter().map(|p| p.name.clone()).collect(),
-        params: policies.iter().map(|p| p.loaded.plan.params.clone()).collect(),
+        params: policies
+            .iter()
+            .map(|p| p.loaded.plan.params.clone())
+            .collect(),
     };
     let table = write_results(&out, &summary, &records)?;
     if !args.quiet {

@@ -447,12 +447,23 @@ fn plan_parameters_are_shown_checked_and_refused_with_the_reason() {
     ]);
     assert_eq!(out.status.code(), Some(0), "{}", text(&out.stderr));
     let s = text(&out.stdout);
-    assert!(s.contains("param max_sweeps = 3  (given; default 2)"), "{s}");
+    assert!(
+        s.contains("param max_sweeps = 3  (given; default 2)"),
+        "{s}"
+    );
     assert!(s.contains("param clearance_mm = 4.0  (default)"), "{s}");
-    assert!(s.contains("repeat at most 3 times"), "the value reached the plan: {s}");
+    assert!(
+        s.contains("repeat at most 3 times"),
+        "the value reached the plan: {s}"
+    );
     for (args, code, why) in [
         (
-            vec!["check", "scripts/stitch_thread.rhai", "--param", "max_sweep=3"],
+            vec![
+                "check",
+                "scripts/stitch_thread.rhai",
+                "--param",
+                "max_sweep=3",
+            ],
             1,
             "--param max_sweep: scripts/stitch_thread.rhai declares no such parameter (its parameters: clearance_mm, max_sweeps)",
         ),
@@ -462,7 +473,12 @@ fn plan_parameters_are_shown_checked_and_refused_with_the_reason() {
             "declares no such parameter (it has no param(\"name\", default) calls)",
         ),
         (
-            vec!["run", "scripts/stitch_thread.rhai", "--param", "max_sweeps=2.5"],
+            vec![
+                "run",
+                "scripts/stitch_thread.rhai",
+                "--param",
+                "max_sweeps=2.5",
+            ],
             3,
             "scripts/stitch_thread.rhai:18:",
         ),
@@ -479,7 +495,12 @@ fn plan_parameters_are_shown_checked_and_refused_with_the_reason() {
             "--param max_sweeps is given twice",
         ),
         (
-            vec!["check", "scripts/stitch_thread.rhai", "--param", "max_sweeps"],
+            vec![
+                "check",
+                "scripts/stitch_thread.rhai",
+                "--param",
+                "max_sweeps",
+            ],
             2,
             "expected NAME=VALUE",
         ),

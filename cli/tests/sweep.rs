@@ -356,7 +356,10 @@ fn a_sweep_over_plan_parameters_gives_each_point_its_values_and_merges_the_same_
     assert!(of(0, "STITCH") == of(3, "STITCH"));
     assert!(of(0, "STITCH, thread-aware") != of(3, "STITCH, thread-aware"));
     let mock = std::fs::read_to_string(one.join("points/0003/mock.toml")).expect("mock.toml");
-    assert!(!mock.contains("param"), "parameters are not mock keys: {mock}");
+    assert!(
+        !mock.contains("param"),
+        "parameters are not mock keys: {mock}"
+    );
 
     // Sharded and merged: the same bytes.
     let parts: Vec<PathBuf> = (1..=2).map(|k| dir(&format!("params-{k}"))).collect();

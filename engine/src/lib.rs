@@ -24,11 +24,11 @@ pub use machine::{
     Counters, Ctx, Cursor, Effect, Event, Interrupted, Mission, Pending, State, pending,
     recovery_condition, state_label, state_parts,
 };
+pub use params::{DeclaredParam, ParamValue, Params, parse_param_arg, valid_param_name};
 pub use plan::{
     BranchRole, FailureClass, NeedleHolder, Node, Op, Plan, PlanError, PlanErrors, SourcePos, Step,
     Throw, caps,
 };
-pub use params::{DeclaredParam, ParamValue, Params, parse_param_arg, valid_param_name};
 pub use reference::{REFERENCE_BEGIN, REFERENCE_END, reference_markdown};
 pub use runner::{
     Attempt, AttemptSink, CheckpointSeen, Decision, PlanHeader, Rebuilt, Report, Runner,

@@ -62,7 +62,11 @@ pub fn parse_param_arg(arg: &str) -> Result<(String, ParamValue), String> {
 }
 
 /// `given`, read as the type of `default` for the parameter `name`.
-pub(crate) fn coerce(name: &str, given: &ParamValue, default: &ParamValue) -> Result<ParamValue, String> {
+pub(crate) fn coerce(
+    name: &str,
+    given: &ParamValue,
+    default: &ParamValue,
+) -> Result<ParamValue, String> {
     let wrong = |expected: &str| {
         Err(format!(
             "param {name:?} was given {given}, but its default {default} makes it {expected}"
@@ -164,7 +168,10 @@ mod tests {
     #[test]
     fn text_is_read_as_the_defaults_type() {
         let t = |s: &str| ParamValue::Text(s.into());
-        assert_eq!(coerce("a", &t("3"), &ParamValue::Int(1)), Ok(ParamValue::Int(3)));
+        assert_eq!(
+            coerce("a", &t("3"), &ParamValue::Int(1)),
+            Ok(ParamValue::Int(3))
+        );
         assert_eq!(
             coerce("a", &t("2.5"), &ParamValue::Float(1.0)),
             Ok(ParamValue::Float(2.5))
@@ -210,7 +217,10 @@ mod tests {
         assert_eq!(s.get("n", ParamValue::Int(2)), Ok(ParamValue::Int(4)));
         assert_eq!(s.get("n", ParamValue::Int(2)), Ok(ParamValue::Int(4)));
         assert!(s.get("n", ParamValue::Int(3)).is_err());
-        assert_eq!(s.get("m", ParamValue::Float(0.5)), Ok(ParamValue::Float(0.5)));
+        assert_eq!(
+            s.get("m", ParamValue::Float(0.5)),
+            Ok(ParamValue::Float(0.5))
+        );
         assert!(s.get("bad name", ParamValue::Int(1)).is_err());
     }
 }

@@ -419,9 +419,7 @@ fn register_params(engine: &mut rhai::Engine, state: &Arc<Mutex<ParamState>>) {
     let get = |state: &Arc<Mutex<ParamState>>| {
         let state = Arc::clone(state);
         move |ctx: &NativeCallContext, name: &str, default: ParamValue| {
-            lock(&state)
-                .get(name, default)
-                .map_err(|e| runtime(ctx, e))
+            lock(&state).get(name, default).map_err(|e| runtime(ctx, e))
         }
     };
     let f = get(state);

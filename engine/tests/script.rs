@@ -422,7 +422,12 @@ fn params_take_their_defaults_or_the_values_given() {
     assert_eq!(loaded.plan.throws.len(), 3);
     assert_eq!(loaded.plan.name, "P");
     assert_eq!(loaded.plan.throws[0].steps().count(), 4);
-    assert!(loaded.params.values().all(|p| !p.given && p.value == p.default));
+    assert!(
+        loaded
+            .params
+            .values()
+            .all(|p| !p.given && p.value == p.default)
+    );
     assert_eq!(
         loaded.plan.params.keys().collect::<Vec<_>>(),
         ["label", "rotation_deg", "sweep", "throws"]
@@ -440,8 +445,7 @@ fn params_take_their_defaults_or_the_values_given() {
     .map(|(k, v)| (k.to_string(), V::Text(v.into())))
     .into_iter()
     .collect();
-    let loaded =
-        load_plan_str(&loader().with_params(given), "p.rhai", PARAMS_PLAN).expect("valid");
+    let loaded = load_plan_str(&loader().with_params(given), "p.rhai", PARAMS_PLAN).expect("valid");
     assert_eq!(loaded.plan.throws.len(), 5);
     assert_eq!(loaded.plan.name, "Q");
     let steps: Vec<_> = loaded.plan.throws[4].steps().map(|(_, s)| s).collect();
@@ -489,8 +493,13 @@ fn a_param_of_the_wrong_type_is_an_error_at_its_call() {
     let e = error_of("let a = param(\"standoff\", mm(12));\nmission(#{ name: \"x\", throws: [] })");
     assert!(e.contains("param(\"name\", default)"), "{e}");
     // Two defaults for one name, and a name that is not one.
-    let e = error_of("let a = param(\"n\", 1);\nlet b = param(\"n\", 2);\nmission(#{ name: \"x\", throws: [] })");
-    assert!(e.starts_with("plan.rhai:2:") && e.contains("declared before"), "{e}");
+    let e = error_of(
+        "let a = param(\"n\", 1);\nlet b = param(\"n\", 2);\nmission(#{ name: \"x\", throws: [] })",
+    );
+    assert!(
+        e.starts_with("plan.rhai:2:") && e.contains("declared before"),
+        "{e}"
+    );
     let e = error_of("let a = param(\"a.b\", 1);\nmission(#{ name: \"x\", throws: [] })");
     assert!(e.contains("ASCII letters"), "{e}");
 }
