@@ -725,28 +725,42 @@ impl Grid<'_> {
     /// `from` along the thread (steps off it allowed only across gaps of a few pixels).
     fn path(&self, from: usize, to: Option<usize>) -> Vec<usize> {
         let n = self.w * self.h;
+        let (w, hh) = (self.w as i64, self.h as i64);
         let mut g = vec![u32::MAX; n];
         let mut parent = vec![u32::MAX; n];
-        let mut heap = BinaryHeap::new();
-        let h = |i: usize| -> u32 {
-            to.map_or(0, |t| {
-                let dx = (i % self.w).abs_diff(t % self.w) as u32;
-                let dy = (i / self.w).abs_diff(t / self.w) as u32;
+        // (f << 32 | cell) in a min-heap: the order of (f, cell) pairs, one compare per step.
+        let mut heap: BinaryHeap<Reverse<u64>> = BinaryHeap::new();
+        let target = to.map(|t| ((t % self.w) as i64, (t / self.w) as i64));
+        let h = |x: i64, y: i64| -> u32 {
+            target.map_or(0, |(tx, ty)| {
+                let (dx, dy) = (x.abs_diff(tx) as u32, y.abs_diff(ty) as u32);
                 5 * dx.max(dy) + 2 * dx.min(dy)
             })
         };
+        let key = |f: u32, i: usize| Reverse((u64::from(f) << 32) | i as u64);
         // Without an end: off the thread only within a few pixels of it (or of the swage).
         let near = if to.is_none() {
             Some(self.near_thread(4, from))
         } else {
             None
         };
+        const D: [(i64, i64, bool); 8] = [
+            (-1, 0, false),
+            (1, 0, false),
+            (0, -1, false),
+            (0, 1, false),
+            (-1, -1, true),
+            (1, -1, true),
+            (-1, 1, true),
+            (1, 1, true),
+        ];
         g[from] = 0;
-        heap.push(Reverse((h(from), from as u32)));
+        heap.push(key(h((from % self.w) as i64, (from / self.w) as i64), from));
         let mut farthest = from;
-        while let Some(Reverse((f, i))) = heap.pop() {
-            let i = i as usize;
-            if f > g[i].saturating_add(h(i)) {
+        while let Some(Reverse(k)) = heap.pop() {
+            let (f, i) = ((k >> 32) as u32, (k & 0xFFFF_FFFF) as usize);
+            let (x, y) = ((i % self.w) as i64, (i / self.w) as i64);
+            if f > g[i].saturating_add(h(x, y)) {
                 continue;
             }
             if Some(i) == to {
@@ -755,7 +769,12 @@ impl Grid<'_> {
             if to.is_none() && self.mask[i] != 0 && g[i] > g[farthest] {
                 farthest = i;
             }
-            for (j, diag) in self.neighbours(i) {
+            for &(dx, dy, diag) in &D {
+                let (nx, ny) = (x + dx, y + dy);
+                if nx < 0 || ny < 0 || nx >= w || ny >= hh {
+                    continue;
+                }
+                let j = (ny * w + nx) as usize;
                 if near.as_ref().is_some_and(|m| !m[j]) {
                     continue;
                 }
@@ -763,7 +782,7 @@ impl Grid<'_> {
                 if c < g[j] {
                     g[j] = c;
                     parent[j] = i as u32;
-                    heap.push(Reverse((c + h(j), j as u32)));
+                    heap.push(key(c + h(nx, ny), j));
                 }
             }
         }
