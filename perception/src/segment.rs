@@ -413,6 +413,9 @@ impl Segmenter for ColorSegmenter {
         let mut bg = vec![0i16; rw * rh];
         let mut br = vec![0i16; rw * rh];
         let mut blocks = vec![[0i32; 3]; bw * bh];
+        // Column sums over the block row so far: one add a pixel, folded into blocks every
+        // B rows.
+        let (mut col_bg, mut col_br) = (vec![0i32; rw], vec![0i32; rw]);
         for y in 0..rh {
             let row = &image.data[((roi.y0 as usize + y) * w + roi.x0 as usize) * 3..][..rw * 3];
             let (bgr, brr) = (&mut bg[y * rw..][..rw], &mut br[y * rw..][..rw]);
@@ -421,15 +424,26 @@ impl Segmenter for ColorSegmenter {
                 *g = b - i16::from(p[1]);
                 *r = b - i16::from(p[0]);
             }
-            let brow = &mut blocks[(y / B) * bw..][..bw];
-            for ((s, g), r) in brow.iter_mut().zip(bgr.chunks(B)).zip(brr.chunks(B)) {
-                s[0] += g.iter().map(|&v| i32::from(v)).sum::<i32>();
-                s[1] += r.iter().map(|&v| i32::from(v)).sum::<i32>();
-                s[2] += g.len() as i32;
+            for (c, &v) in col_bg.iter_mut().zip(bgr.iter()) {
+                *c += i32::from(v);
+            }
+            for (c, &v) in col_br.iter_mut().zip(brr.iter()) {
+                *c += i32::from(v);
+            }
+            if y % B == B - 1 || y + 1 == rh {
+                let rows = (y % B + 1) as i32;
+                let brow = &mut blocks[(y / B) * bw..][..bw];
+                for ((s, g), r) in brow.iter_mut().zip(col_bg.chunks(B)).zip(col_br.chunks(B)) {
+                    *s = [g.iter().sum(), r.iter().sum(), g.len() as i32 * rows];
+                }
+                col_bg.fill(0);
+                col_br.fill(0);
             }
         }
-        // Each block's surroundings' means.
+        // Each block's surroundings' means (inside the region a full 12 × 12: a division the
+        // compiler makes a multiplication).
         let mut means = vec![[0i32; 2]; bw * bh];
+        let div = |a: i32, n: i32| if n == 144 { a / 144 } else { a / n.max(1) };
         for by in 0..bh {
             for bx in 0..bw {
                 let mut t = [0i32; 3];
@@ -439,7 +453,7 @@ impl Segmenter for ColorSegmenter {
                         t = [t[0] + s[0], t[1] + s[1], t[2] + s[2]];
                     }
                 }
-                means[by * bw + bx] = [t[0] / t[2].max(1), t[1] / t[2].max(1)];
+                means[by * bw + bx] = [div(t[0], t[2]), div(t[1], t[2])];
             }
         }
         // A pixel is thread where (blue − green) − mean ≥ THREAD_CONTRAST, (blue − red) −
