@@ -33,8 +33,6 @@ use crate::PerceptionError;
 use crate::segment::{Rect, Segmenter};
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
-use std::cmp::Reverse;
-use std::collections::BinaryHeap;
 use stitch_robot::{Point, RgbImage, StereoCalibration};
 
 /// What the tracer knows before it looks.
@@ -682,6 +680,55 @@ fn smoothest(
 }
 
 /// The left region's thread mask, as a graph of pixels.
+/// The open set of an A* search with a consistent heuristic, whose f never falls below the
+/// last popped and never rises more than the ring's length above it (Dial's buckets): pops
+/// give the least f, and among equal f the least cell — the order a binary heap of (f, cell)
+/// gives, without sifting through every entry. Written here because it is a dozen lines
+/// tied to this search's bounds.
+struct Buckets {
+    ring: Vec<Vec<u32>>,
+    /// The f of the bucket at the ring's cursor: the last popped (the first pushed before
+    /// any pop).
+    f: Option<u32>,
+    len: usize,
+}
+
+impl Buckets {
+    fn new(span: usize) -> Self {
+        Self {
+            ring: vec![Vec::new(); span + 1],
+            f: None,
+            len: 0,
+        }
+    }
+
+    fn push(&mut self, f: u32, cell: u32) {
+        let at = *self.f.get_or_insert(f);
+        debug_assert!(f >= at && ((f - at) as usize) < self.ring.len());
+        let n = self.ring.len();
+        self.ring[f as usize % n].push(cell);
+        self.len += 1;
+    }
+
+    fn pop(&mut self) -> Option<(u32, u32)> {
+        if self.len == 0 {
+            return None;
+        }
+        let n = self.ring.len();
+        let mut f = self.f?;
+        loop {
+            let b = &mut self.ring[f as usize % n];
+            if let Some((k, _)) = b.iter().enumerate().min_by_key(|&(_, &c)| c) {
+                let cell = b.swap_remove(k);
+                self.len -= 1;
+                self.f = Some(f);
+                return Some((f, cell));
+            }
+            f += 1;
+        }
+    }
+}
+
 struct Grid<'a> {
     w: usize,
     h: usize,
@@ -728,8 +775,9 @@ impl Grid<'_> {
         let (w, hh) = (self.w as i64, self.h as i64);
         let mut g = vec![u32::MAX; n];
         let mut parent = vec![u32::MAX; n];
-        // (f << 32 | cell) in a min-heap: the order of (f, cell) pairs, one compare per step.
-        let mut heap: BinaryHeap<Reverse<u64>> = BinaryHeap::new();
+        // A step costs at most 7·gap and moves the heuristic by at most 7: a new entry's f is
+        // within that of the one popped.
+        let mut heap = Buckets::new(7 * self.gap as usize + 8);
         let target = to.map(|t| ((t % self.w) as i64, (t / self.w) as i64));
         let h = |x: i64, y: i64| -> u32 {
             target.map_or(0, |(tx, ty)| {
@@ -737,7 +785,6 @@ impl Grid<'_> {
                 5 * dx.max(dy) + 2 * dx.min(dy)
             })
         };
-        let key = |f: u32, i: usize| Reverse((u64::from(f) << 32) | i as u64);
         // Without an end: off the thread only within a few pixels of it (or of the swage).
         let near = if to.is_none() {
             Some(self.near_thread(4, from))
@@ -755,10 +802,10 @@ impl Grid<'_> {
             (1, 1, true),
         ];
         g[from] = 0;
-        heap.push(key(h((from % self.w) as i64, (from / self.w) as i64), from));
+        heap.push(h((from % self.w) as i64, (from / self.w) as i64), from as u32);
         let mut farthest = from;
-        while let Some(Reverse(k)) = heap.pop() {
-            let (f, i) = ((k >> 32) as u32, (k & 0xFFFF_FFFF) as usize);
+        while let Some((f, i)) = heap.pop() {
+            let i = i as usize;
             let (x, y) = ((i % self.w) as i64, (i / self.w) as i64);
             if f > g[i].saturating_add(h(x, y)) {
                 continue;
@@ -782,7 +829,7 @@ impl Grid<'_> {
                 if c < g[j] {
                     g[j] = c;
                     parent[j] = i as u32;
-                    heap.push(key(c + h(nx, ny), j));
+                    heap.push(c + h(nx, ny), j as u32);
                 }
             }
         }
