@@ -802,7 +802,10 @@ impl Grid<'_> {
             (1, 1, true),
         ];
         g[from] = 0;
-        heap.push(h((from % self.w) as i64, (from / self.w) as i64), from as u32);
+        heap.push(
+            h((from % self.w) as i64, (from / self.w) as i64),
+            from as u32,
+        );
         let mut farthest = from;
         while let Some((f, i)) = heap.pop() {
             let i = i as usize;
@@ -1318,6 +1321,42 @@ impl Basis {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The buckets pop what a binary heap of (f, cell) would, stale duplicates included, on
+    /// any sequence an A* with a consistent heuristic makes (each push at most `span` above
+    /// the last pop's f, never below it).
+    #[test]
+    fn the_buckets_pop_in_the_binary_heaps_order() {
+        use rand::Rng;
+        use rand_chacha::ChaCha8Rng;
+        use rand_chacha::rand_core::SeedableRng;
+        use std::cmp::Reverse;
+        use std::collections::BinaryHeap;
+        for seed in 0..200u64 {
+            let mut rng = ChaCha8Rng::seed_from_u64(seed);
+            let span = rng.random_range(1..70usize);
+            let mut buckets = Buckets::new(span);
+            let mut heap = BinaryHeap::new();
+            let mut last = rng.random_range(0..1000u32);
+            let (f0, c0) = (last, rng.random_range(0..50u32));
+            buckets.push(f0, c0);
+            heap.push(Reverse((f0, c0)));
+            for _ in 0..400 {
+                for _ in 0..rng.random_range(0..4) {
+                    let f = last + rng.random_range(0..=span as u32);
+                    let c = rng.random_range(0..50u32);
+                    buckets.push(f, c);
+                    heap.push(Reverse((f, c)));
+                }
+                let want = heap.pop().map(|Reverse(k)| k);
+                assert_eq!(buckets.pop(), want, "seed {seed}");
+                match want {
+                    Some((f, _)) => last = f,
+                    None => break,
+                }
+            }
+        }
+    }
 
     #[test]
     fn the_basis_sums_to_one_and_fits_a_line_exactly() {
