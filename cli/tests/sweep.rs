@@ -223,18 +223,23 @@ fn bad_sweeps_are_refused_before_anything_runs() {
     ] {
         let s = d.join("s.toml");
         std::fs::write(&s, body).expect("spec");
-        let out = d.join("out");
-        let o = stitch(&[
-            "sweep",
-            s.to_str().expect("utf-8"),
-            "--out",
-            out.to_str().expect("utf-8"),
-        ]);
-        let said = text(&o.stderr);
-        assert_eq!(o.status.code(), Some(1), "{body}: {said}");
-        assert!(said.contains(why), "{body}: expected {why:?} in {said}");
-        assert!(!out.join("points").exists(), "nothing ran: {body}");
+        refused_before_running(&s, &d.join("out"), why);
     }
+}
+
+/// `stitch sweep SPEC` exits 1 saying `why`, and runs no point.
+fn refused_before_running(spec: &Path, out: &Path, why: &str) {
+    let o = stitch(&[
+        "sweep",
+        spec.to_str().expect("utf-8"),
+        "--out",
+        out.to_str().expect("utf-8"),
+    ]);
+    let said = text(&o.stderr);
+    let body = std::fs::read_to_string(spec).unwrap_or_default();
+    assert_eq!(o.status.code(), Some(1), "{body}: {said}");
+    assert!(said.contains(why), "{body}: expected {why:?} in {said}");
+    assert!(!out.join("points").exists(), "nothing ran: {body}");
 }
 
 #[test]
@@ -409,17 +414,6 @@ fn bad_plan_parameters_in_a_sweep_are_refused_before_anything_runs() {
             "a parameter's value is an integer, number, boolean or string",
         ),
     ] {
-        let s = params_spec(name, grid);
-        let out = dir(&format!("{name}-out"));
-        let o = stitch(&[
-            "sweep",
-            s.to_str().expect("utf-8"),
-            "--out",
-            out.to_str().expect("utf-8"),
-        ]);
-        let said = text(&o.stderr);
-        assert_eq!(o.status.code(), Some(1), "{grid}: {said}");
-        assert!(said.contains(why), "{grid}: expected {why:?} in {said}");
-        assert!(!out.join("points").exists(), "nothing ran: {grid}");
+        refused_before_running(&params_spec(name, grid), &dir(&format!("{name}-out")), why);
     }
 }

@@ -416,54 +416,33 @@ fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
 
 /// `param(name, default)`, one overload per type a default may have.
 fn register_params(engine: &mut rhai::Engine, state: &Arc<Mutex<ParamState>>) {
-    let get = |state: &Arc<Mutex<ParamState>>| {
-        let state = Arc::clone(state);
-        move |ctx: &NativeCallContext, name: &str, default: ParamValue| {
-            lock(&state).get(name, default).map_err(|e| runtime(ctx, e))
-        }
-    };
-    let f = get(state);
-    engine.register_fn(
-        "param",
-        move |ctx: NativeCallContext, name: ImmutableString, d: INT| -> RhaiResult<INT> {
-            match f(&ctx, &name, ParamValue::Int(d))? {
-                ParamValue::Int(i) => Ok(i),
-                _ => unreachable_type(&ctx),
-            }
-        },
-    );
-    let f = get(state);
-    engine.register_fn(
-        "param",
-        move |ctx: NativeCallContext, name: ImmutableString, d: f64| -> RhaiResult<f64> {
-            match f(&ctx, &name, ParamValue::Float(d))? {
-                ParamValue::Float(x) => Ok(x),
-                _ => unreachable_type(&ctx),
-            }
-        },
-    );
-    let f = get(state);
-    engine.register_fn(
-        "param",
-        move |ctx: NativeCallContext, name: ImmutableString, d: bool| -> RhaiResult<bool> {
-            match f(&ctx, &name, ParamValue::Bool(d))? {
-                ParamValue::Bool(b) => Ok(b),
-                _ => unreachable_type(&ctx),
-            }
-        },
-    );
-    let f = get(state);
-    engine.register_fn(
-        "param",
-        move |ctx: NativeCallContext,
-              name: ImmutableString,
-              d: ImmutableString|
-              -> RhaiResult<ImmutableString> {
-            match f(&ctx, &name, ParamValue::Text(d.to_string()))? {
-                ParamValue::Text(s) => Ok(s.into()),
-                _ => unreachable_type(&ctx),
-            }
-        },
+    // One overload per type: the default wrapped as a `ParamValue`, the answer (of the same
+    // variant) unwrapped.
+    macro_rules! overload {
+        ($ty:ty, $wrap:expr, $variant:ident, $unwrap:expr) => {{
+            let state = Arc::clone(state);
+            engine.register_fn(
+                "param",
+                move |ctx: NativeCallContext, name: ImmutableString, d: $ty| -> RhaiResult<$ty> {
+                    match lock(&state)
+                        .get(&name, $wrap(d))
+                        .map_err(|e| runtime(&ctx, e))?
+                    {
+                        ParamValue::$variant(v) => Ok($unwrap(v)),
+                        _ => unreachable_type(&ctx),
+                    }
+                },
+            );
+        }};
+    }
+    overload!(INT, ParamValue::Int, Int, |v| v);
+    overload!(f64, ParamValue::Float, Float, |v| v);
+    overload!(bool, ParamValue::Bool, Bool, |v| v);
+    overload!(
+        ImmutableString,
+        |d: ImmutableString| ParamValue::Text(d.to_string()),
+        Text,
+        |v: String| ImmutableString::from(v)
     );
 }
 
