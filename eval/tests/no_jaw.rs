@@ -40,3 +40,31 @@ fn a_needle_with_no_jaw_in_view_on_the_independent_set() {
     // Measured: 7 of 10, the other three typed failures (bad_fit); the issue asks 95 %.
     assert!(a.within_1mm_5deg >= 0.6, "{a:?}");
 }
+
+/// Three pairs of the independent set (seed 2, the set the pipeline's changes for it were
+/// made looking at) whose needle's points are a minority of the cloud beside wet glare: the
+/// plane with the most points is the glare's, and before the circle with no plane first
+/// every one was refused (`bad_fit`, 16–20 % of the points near the best circle on it).
+#[test]
+fn a_needle_outnumbered_by_glare_is_found_by_the_circle_with_no_plane_first() {
+    let set = independent::dataset(171, 2, Needle::default());
+    let needle = Needle::default();
+    for i in [69usize, 112, 170] {
+        let s = &set[i];
+        let (left, right) = independent::render(s);
+        let p = NeedlePipeline::classical(s.calibration.clone(), needle).expect("pipeline");
+        let out = p
+            .estimate(&left, &right, None, 2 ^ i as u64)
+            .unwrap_or_else(|e| panic!("pair {i}: {e}"));
+        assert!(
+            out.diagnostics.free_circle,
+            "pair {i}: {:?}",
+            out.diagnostics
+        );
+        let e = stitch_perception::PoseError::between(&needle, &out.pose, &s.truth);
+        assert!(
+            e.endpoints_m() <= 1e-3 && e.normal_rad <= 5f64.to_radians(),
+            "pair {i}: {e:?}"
+        );
+    }
+}

@@ -243,6 +243,73 @@ pub fn ransac_circle(
     Some((circle, inliers))
 }
 
+/// RANSAC circle of radius `r` in space, with no plane first: hypotheses from the circle
+/// through three points, kept when its radius is within 15 % of `r`; the one with the most
+/// inliers, refined as [`ransac_circle`]'s is. For a cloud whose needle points are a
+/// minority (wet glare on the tissue beside it, a jaw's metal): the plane with the most
+/// points is then the clutter's, and no circle on it holds the needle.
+pub fn ransac_circle_free(
+    points: &[Point],
+    r: f64,
+    params: &RansacParams,
+    iterations: usize,
+    rng: &mut ChaCha8Rng,
+) -> Option<(Circle, Vec<usize>)> {
+    if points.len() < 3 {
+        return None;
+    }
+    let t = params.circle_threshold_m;
+    let mut best: Option<(usize, Circle)> = None;
+    for _ in 0..iterations {
+        let [a, b, c] = [(); 3].map(|_| points[rng.random_range(0..points.len())]);
+        let Some(k) = circle_through(&a, &b, &c) else {
+            continue;
+        };
+        // Points close together place the circle poorly; a radius far from the needle's is
+        // not the needle.
+        if (k.radius - r).abs() > 0.15 * r
+            || (b - a).norm().min((c - b).norm()).min((a - c).norm()) < 0.3 * r
+        {
+            continue;
+        }
+        let k = Circle { radius: r, ..k };
+        let count = points.iter().filter(|q| k.distance(q) <= t).count();
+        if best.is_none_or(|(n, _)| count > n) {
+            best = Some((count, k));
+        }
+    }
+    let (_, mut circle) = best?;
+    let inliers_of = |c: &Circle| -> Vec<usize> {
+        (0..points.len())
+            .filter(|&i| c.distance(&points[i]) <= t)
+            .collect()
+    };
+    let mut inliers = inliers_of(&circle);
+    for _ in 0..2 {
+        let pts: Vec<Point> = inliers.iter().map(|&i| points[i]).collect();
+        circle = refine_circle(&pts, circle, 8);
+        inliers = inliers_of(&circle);
+    }
+    Some((circle, inliers))
+}
+
+/// The circle through three points (`None` if they are nearly on a line).
+pub fn circle_through(a: &Point, b: &Point, c: &Point) -> Option<Circle> {
+    let (u, v) = (b - a, c - a);
+    let n = u.cross(&v);
+    let n2 = n.norm_squared();
+    if n2 < 1e-18 {
+        return None;
+    }
+    // The circumcentre: a + (|u|² v × n + |v|² n × u) / (2 |n|²).
+    let to_centre = (v.cross(&n) * u.norm_squared() + n.cross(&u) * v.norm_squared()) / (2.0 * n2);
+    Some(Circle {
+        center: a + to_centre,
+        normal: n / n2.sqrt(),
+        radius: to_centre.norm(),
+    })
+}
+
 /// Gauss–Newton on the centre (3) and the normal's tilt (2) of a circle of fixed radius,
 /// minimising the points' squared distances to it.
 pub fn refine_circle(points: &[Point], mut c: Circle, iterations: usize) -> Circle {
@@ -358,6 +425,47 @@ mod tests {
                 c + (e1 * a.cos() + e2 * a.sin()) * r
             })
             .collect()
+    }
+
+    #[test]
+    fn the_circle_through_three_points_is_their_circumcircle() {
+        let c = Point::new(0.01, -0.02, -0.1);
+        let n = UnitQuaternion::from_euler_angles(0.3, -0.5, 1.0) * Vector::z();
+        let pts = half_circle(c, n, 0.012, 7);
+        let k = circle_through(&pts[0], &pts[3], &pts[6]).expect("a circle");
+        assert!((k.center - c).norm() < 1e-12, "{:?}", k.center - c);
+        assert!((k.radius - 0.012).abs() < 1e-12);
+        assert!(k.normal.cross(&n).norm() < 1e-9);
+        assert!(circle_through(&pts[0], &pts[0], &pts[6]).is_none());
+    }
+
+    #[test]
+    fn a_needle_outnumbered_by_clutter_on_a_plane_is_found_with_no_plane_first() {
+        // The needle, 100 points within 0.1 mm, held 4 mm above and tilted 50° to a plane of
+        // 600 glare points (wet tissue) spread under and round it: the plane with the most
+        // points is the glare's, and no circle on it is the needle.
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let c = Point::new(0.0, 0.0, -0.1);
+        let n = Vector::new(0.0, (50f64).to_radians().sin(), (50f64).to_radians().cos());
+        let mut pts: Vec<Point> = half_circle(c, n, 0.012, 100)
+            .into_iter()
+            .map(|p| p + Vector::new(rng.random(), rng.random(), rng.random()) * 0.0001)
+            .collect();
+        for _ in 0..600 {
+            pts.push(Point::new(
+                rng.random_range(-0.02..0.02),
+                rng.random_range(-0.02..0.02),
+                -0.1 - 0.004 - 0.009,
+            ));
+        }
+        let params = RansacParams::default();
+        let (plane, _) = ransac_plane(&pts, &params, &mut rng).expect("a plane");
+        assert!(plane.normal.z.abs() > 0.99, "the glare's plane: {plane:?}");
+        let (circle, inliers) =
+            ransac_circle_free(&pts, 0.012, &params, 2000, &mut rng).expect("a circle");
+        assert!((circle.center - c).norm() < 3e-4, "{:?}", circle.center - c);
+        assert!(circle.normal.cross(&n).norm() < 0.03, "{:?}", circle.normal);
+        assert!(inliers.len() >= 95, "{}", inliers.len());
     }
 
     #[test]

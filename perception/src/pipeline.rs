@@ -21,6 +21,9 @@ use stitch_robot::{Needle, Point, Pose, StereoCalibration, StereoCamera, StereoF
 /// Both views' masks, the cloud from them and the diagnostics so far.
 type Found = (Masks, Masks, Vec<Point>, Diagnostics);
 
+/// Mixed into the seed for the free circle's draws (any constant: they are its own).
+const FREE_CIRCLE_SEED: u64 = 0x5EED_F8EE;
+
 /// Places for the needle tried in turn, at most (the segmenter's ranking).
 const MAX_CANDIDATES: usize = 3;
 
@@ -45,6 +48,9 @@ pub struct PipelineParams {
     pub min_points: usize,
     /// RANSAC thresholds and iterations.
     pub ransac: RansacParams,
+    /// Hypotheses of the circle through three points, for a cloud whose plane and circle do
+    /// not hold (most draws miss: the needle's points may be a fifth of the cloud).
+    pub free_circle_iterations: usize,
     /// Least share of the points within `share_zone_m` of the fitted circle that are on it.
     pub min_inlier_share: f64,
     /// Points this near the fitted circle count for `min_inlier_share` (clutter beside
@@ -108,6 +114,7 @@ impl Default for PipelineParams {
             max_points: 1500,
             min_points: 40,
             ransac: RansacParams::default(),
+            free_circle_iterations: 2000,
             min_inlier_share: 0.5,
             share_zone_m: 0.003,
             min_arc_rad: 140f64.to_radians(),
@@ -176,6 +183,8 @@ pub struct Diagnostics {
     /// The circle came from the left silhouette's ellipse, not from the cloud (which could
     /// not be fitted).
     pub from_silhouettes: bool,
+    /// The circle came from the cloud with no plane first (its plane was clutter's).
+    pub free_circle: bool,
     /// Stage times.
     pub times: StageTimes,
 }
@@ -598,43 +607,58 @@ impl NeedlePipeline {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let r = self.needle.radius_m;
         let images = Images::new(c, &lm, &rm, self.needle.wire_diameter_m);
-        // From the cloud; if it cannot be fitted, from the silhouettes alone.
-        let Fitted {
+        // From the cloud (its plane, then the circle in it); if that cannot be fitted, from
+        // the silhouettes alone; then from the cloud with no plane first (its own draws).
+        // The first whose arc a half-circle needle can be placed on is the answer, else the
+        // cloud's failure.
+        let mut first_error: Option<PerceptionError> = None;
+        let mut fitted: Option<Fitted> = None;
+        for attempt in 0..3 {
+            diag.image_support = None;
+            diag.from_silhouettes = false;
+            diag.free_circle = attempt == 2;
+            let f = match attempt {
+                0 => self.fit_cloud(&cloud, &images, &mut rng, &mut diag),
+                1 => self
+                    .fit_silhouettes(&images, &mut rng, &mut diag)
+                    .ok_or_else(|| PerceptionError::BadFit {
+                        why: "the silhouettes hold no circle".into(),
+                    }),
+                _ => {
+                    let mut own = ChaCha8Rng::seed_from_u64(seed ^ FREE_CIRCLE_SEED);
+                    self.fit_cloud_free(&cloud, &images, &mut own, &mut diag)
+                }
+            };
+            // A circle the cloud holds with too short an arc is the answer (a failure): the
+            // other ways would place a half circle on that same short stretch of wire. The
+            // free circle, found in clutter, needs the cloud's arc as well as the images'
+            // support.
+            let cloud_fitted = attempt == 0 && f.is_ok();
+            let f = f.and_then(|f| self.check_arc(f, attempt < 2 && diag.image_support.is_some()));
+            match f {
+                Err(e) if cloud_fitted => return Err(e),
+                Ok(f) => {
+                    fitted = Some(f);
+                    break;
+                }
+                Err(e @ PerceptionError::BadFit { .. }) => {
+                    first_error.get_or_insert(e);
+                }
+                Err(e) => return Err(e),
+            }
+        }
+        let Some(Fitted {
             circle,
             arc,
             share,
             tight,
-        } = match self.fit_cloud(&cloud, &images, &mut rng, &mut diag) {
-            Ok(f) => f,
-            Err(e @ PerceptionError::BadFit { .. }) => self
-                .fit_silhouettes(&images, &mut rng, &mut diag)
-                .ok_or(e)?,
-            Err(e) => return Err(e),
+        }) = fitted
+        else {
+            return Err(first_error.unwrap_or(PerceptionError::BadFit {
+                why: "no circle".into(),
+            }));
         };
         diag.arc_rad = arc.extent;
-        // A circle both views hold is placed well from less of its arc than a cloud's.
-        let min_arc = if diag.image_support.is_some() {
-            p.image_min_arc_rad
-        } else {
-            p.min_arc_rad
-        };
-        if arc.extent < min_arc {
-            return Err(PerceptionError::BadFit {
-                why: format!(
-                    "only {:.0}° of the needle's arc seen (at least {:.0}° needed)",
-                    arc.extent.to_degrees(),
-                    min_arc.to_degrees()
-                ),
-            });
-        }
-        if arc.extent > PI + p.max_overshoot_rad {
-            return Err(PerceptionError::BadFit {
-                why: format!(
-                    "points cover {:.0}° of the circle, more than a half-circle needle",
-                    arc.extent.to_degrees()
-                ),
-            });
-        }
         // The ends: both seen → centre the half circle on the arc; one hidden → the thread
         // says which end is seen.
         let (e1, e2) = plane_basis(&circle.normal);
@@ -731,6 +755,35 @@ impl NeedlePipeline {
         })
     }
 
+    /// A fit whose arc a half-circle needle can lie on: enough of it seen (less when the
+    /// images decide the circle: `by_images`), and no more than a half circle and its ends.
+    fn check_arc(&self, f: Fitted, by_images: bool) -> Result<Fitted, PerceptionError> {
+        let p = &self.params;
+        let min_arc = if by_images {
+            p.image_min_arc_rad
+        } else {
+            p.min_arc_rad
+        };
+        if f.arc.extent < min_arc {
+            return Err(PerceptionError::BadFit {
+                why: format!(
+                    "only {:.0}° of the needle's arc seen (at least {:.0}° needed)",
+                    f.arc.extent.to_degrees(),
+                    min_arc.to_degrees()
+                ),
+            });
+        }
+        if f.arc.extent > PI + p.max_overshoot_rad {
+            return Err(PerceptionError::BadFit {
+                why: format!(
+                    "points cover {:.0}° of the circle, more than a half-circle needle",
+                    f.arc.extent.to_degrees()
+                ),
+            });
+        }
+        Ok(f)
+    }
+
     /// The circle from the cloud (RANSAC plane, then circle of the needle's radius),
     /// refined against both views' masks; the images decide if they hold it, the cloud's
     /// share test otherwise.
@@ -754,6 +807,57 @@ impl NeedlePipeline {
                 why: format!("no {:.1} mm circle through the points", r * 1e3),
             })?;
         let pts: Vec<Point> = inliers.iter().map(|&i| on_plane[i]).collect();
+        self.judge_cloud_circle(cloud, pts, circle, images, diag)
+    }
+
+    /// The circle through the cloud with no plane first ([`fit::ransac_circle_free`]), judged
+    /// as [`Self::fit_cloud`]'s is: for a cloud in which the needle's points are a minority
+    /// beside glare or a jaw's metal, whose plane is not the needle's.
+    fn fit_cloud_free(
+        &self,
+        cloud: &[Point],
+        images: &Images,
+        rng: &mut ChaCha8Rng,
+        diag: &mut Diagnostics,
+    ) -> Result<Fitted, PerceptionError> {
+        let p = &self.params;
+        let (circle, inliers) = fit::ransac_circle_free(
+            cloud,
+            self.needle.radius_m,
+            &p.ransac,
+            p.free_circle_iterations,
+            rng,
+        )
+        .ok_or_else(|| PerceptionError::BadFit {
+            why: format!(
+                "no {:.1} mm circle through the points",
+                self.needle.radius_m * 1e3
+            ),
+        })?;
+        let pts: Vec<Point> = inliers.iter().map(|&i| cloud[i]).collect();
+        // The cloud is cluttered (its plane did not hold the needle): only a circle both
+        // views' masks hold is taken, not one the cloud's share test alone passes.
+        let f = self.judge_cloud_circle(cloud, pts, circle, images, diag)?;
+        if diag.image_support.is_none() {
+            return Err(PerceptionError::BadFit {
+                why: "the circle through the cloud with no plane first: the images do not hold it"
+                    .into(),
+            });
+        }
+        Ok(f)
+    }
+
+    /// A circle found in the cloud with its inliers `pts`: held if enough of the points near
+    /// it are on it, or moved onto the wire if both views' masks hold it there.
+    fn judge_cloud_circle(
+        &self,
+        cloud: &[Point],
+        pts: Vec<Point>,
+        circle: Circle,
+        images: &Images,
+        diag: &mut Diagnostics,
+    ) -> Result<Fitted, PerceptionError> {
+        let p = &self.params;
         diag.circle_inliers = pts.len();
         diag.rms_m = (pts.iter().map(|q| circle.distance(q).powi(2)).sum::<f64>()
             / pts.len().max(1) as f64)
@@ -1042,6 +1146,7 @@ impl NeedlePipeline {
             taper: [None, None],
             image_support: None,
             from_silhouettes: false,
+            free_circle: false,
             times: StageTimes {
                 segment: t1 - t0,
                 disparity: t2 - t1,
