@@ -37,7 +37,8 @@ fn a_needle_with_no_jaw_in_view_on_the_independent_set() {
     let a = accuracy(&results[0]);
     println!("independent set, no jaw: {a:?}");
     assert_eq!(a.wrong, 0, "{a:?}");
-    // Measured: 7 of 10, the other three typed failures (bad_fit); the issue asks 95 %.
+    // Measured: 9 of 10, the other a typed failure (7 of 10 before the circle with no plane
+    // first); the issue asks 95 %.
     assert!(a.within_1mm_5deg >= 0.6, "{a:?}");
 }
 

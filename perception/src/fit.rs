@@ -244,13 +244,16 @@ pub fn ransac_circle(
 }
 
 /// RANSAC circle of radius `r` in space, with no plane first: hypotheses from the circle
-/// through three points, kept when its radius is within 15 % of `r`; the one with the most
-/// inliers, refined as [`ransac_circle`]'s is. For a cloud whose needle points are a
-/// minority (wet glare on the tissue beside it, a jaw's metal): the plane with the most
-/// points is then the clutter's, and no circle on it holds the needle.
+/// through three points, kept when its radius is within 15 % of `r`; the best refined as
+/// [`ransac_circle`]'s is. For a cloud whose needle points are a minority (wet glare on the
+/// tissue beside it, a jaw's metal): the plane with the most points is then the clutter's,
+/// and no circle on it holds the needle. A hypothesis scores its inliers times their share
+/// of the points within `zone_m` of it: in a dense field of glare any circle has many
+/// inliers, and many more points just off it.
 pub fn ransac_circle_free(
     points: &[Point],
     r: f64,
+    zone_m: f64,
     params: &RansacParams,
     iterations: usize,
     rng: &mut ChaCha8Rng,
@@ -259,7 +262,7 @@ pub fn ransac_circle_free(
         return None;
     }
     let t = params.circle_threshold_m;
-    let mut best: Option<(usize, Circle)> = None;
+    let mut best: Option<((usize, usize), Circle)> = None;
     for _ in 0..iterations {
         let [a, b, c] = [(); 3].map(|_| points[rng.random_range(0..points.len())]);
         let Some(k) = circle_through(&a, &b, &c) else {
@@ -273,9 +276,16 @@ pub fn ransac_circle_free(
             continue;
         }
         let k = Circle { radius: r, ..k };
-        let count = points.iter().filter(|q| k.distance(q) <= t).count();
-        if best.is_none_or(|(n, _)| count > n) {
-            best = Some((count, k));
+        let (mut on, mut near) = (0usize, 0usize);
+        for q in points {
+            let d = k.distance(q);
+            on += usize::from(d <= t);
+            near += usize::from(d <= zone_m);
+        }
+        // on × on / near, compared without division.
+        let score = (on * on, near.max(1));
+        if best.is_none_or(|(b, _)| score.0 * b.1 > b.0 * score.1) {
+            best = Some((score, k));
         }
     }
     let (_, mut circle) = best?;
@@ -462,7 +472,7 @@ mod tests {
         let (plane, _) = ransac_plane(&pts, &params, &mut rng).expect("a plane");
         assert!(plane.normal.z.abs() > 0.99, "the glare's plane: {plane:?}");
         let (circle, inliers) =
-            ransac_circle_free(&pts, 0.012, &params, 2000, &mut rng).expect("a circle");
+            ransac_circle_free(&pts, 0.012, 0.003, &params, 2000, &mut rng).expect("a circle");
         assert!((circle.center - c).norm() < 3e-4, "{:?}", circle.center - c);
         assert!(circle.normal.cross(&n).norm() < 0.03, "{:?}", circle.normal);
         assert!(inliers.len() >= 95, "{}", inliers.len());

@@ -630,11 +630,16 @@ impl NeedlePipeline {
                 }
             };
             // A circle the cloud holds with too short an arc is the answer (a failure): the
-            // other ways would place a half circle on that same short stretch of wire. The
-            // free circle, found in clutter, needs the cloud's arc as well as the images'
-            // support.
+            // other ways would place a half circle on that same short stretch of wire. A
+            // circle found in clutter places the needle only when both its ends are seen
+            // (an end hidden is placed from the ends' cues, which clutter confuses).
             let cloud_fitted = attempt == 0 && f.is_ok();
-            let f = f.and_then(|f| self.check_arc(f, attempt < 2 && diag.image_support.is_some()));
+            let min_arc = match attempt {
+                2 => PI - p.full_arc_tolerance_rad,
+                _ if diag.image_support.is_some() => p.image_min_arc_rad,
+                _ => p.min_arc_rad,
+            };
+            let f = f.and_then(|f| self.check_arc(f, min_arc));
             match f {
                 Err(e) if cloud_fitted => return Err(e),
                 Ok(f) => {
@@ -755,15 +760,10 @@ impl NeedlePipeline {
         })
     }
 
-    /// A fit whose arc a half-circle needle can lie on: enough of it seen (less when the
-    /// images decide the circle: `by_images`), and no more than a half circle and its ends.
-    fn check_arc(&self, f: Fitted, by_images: bool) -> Result<Fitted, PerceptionError> {
+    /// A fit whose arc a half-circle needle can lie on: at least `min_arc` of it seen (rad),
+    /// and no more than a half circle and its ends.
+    fn check_arc(&self, f: Fitted, min_arc: f64) -> Result<Fitted, PerceptionError> {
         let p = &self.params;
-        let min_arc = if by_images {
-            p.image_min_arc_rad
-        } else {
-            p.min_arc_rad
-        };
         if f.arc.extent < min_arc {
             return Err(PerceptionError::BadFit {
                 why: format!(
@@ -824,6 +824,7 @@ impl NeedlePipeline {
         let (circle, inliers) = fit::ransac_circle_free(
             cloud,
             self.needle.radius_m,
+            p.share_zone_m,
             &p.ransac,
             p.free_circle_iterations,
             rng,
