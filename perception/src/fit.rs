@@ -224,23 +224,12 @@ pub fn ransac_circle(
         }
     }
     let (_, c2) = best?;
-    let mut circle = Circle {
+    let circle = Circle {
         center: Point::from(origin + e1 * c2.x + e2 * c2.y),
         normal: plane.normal,
         radius: r,
     };
-    let inliers_of = |c: &Circle| -> Vec<usize> {
-        (0..points.len())
-            .filter(|&i| c.distance(&points[i]) <= t)
-            .collect()
-    };
-    let mut inliers = inliers_of(&circle);
-    for _ in 0..2 {
-        let pts: Vec<Point> = inliers.iter().map(|&i| points[i]).collect();
-        circle = refine_circle(&pts, circle, 8);
-        inliers = inliers_of(&circle);
-    }
-    Some((circle, inliers))
+    Some(refined_on_inliers(points, circle, t))
 }
 
 /// RANSAC circle of radius `r` in space, with no plane first: hypotheses from the circle
@@ -288,7 +277,13 @@ pub fn ransac_circle_free(
             best = Some((score, k));
         }
     }
-    let (_, mut circle) = best?;
+    let (_, circle) = best?;
+    Some(refined_on_inliers(points, circle, t))
+}
+
+/// A RANSAC circle refined twice on its inliers (the points within `t` of it, m), and the
+/// inliers of the refined circle.
+fn refined_on_inliers(points: &[Point], mut circle: Circle, t: f64) -> (Circle, Vec<usize>) {
     let inliers_of = |c: &Circle| -> Vec<usize> {
         (0..points.len())
             .filter(|&i| c.distance(&points[i]) <= t)
@@ -300,7 +295,7 @@ pub fn ransac_circle_free(
         circle = refine_circle(&pts, circle, 8);
         inliers = inliers_of(&circle);
     }
-    Some((circle, inliers))
+    (circle, inliers)
 }
 
 /// The circle through three points (`None` if they are nearly on a line).
