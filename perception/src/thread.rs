@@ -5,14 +5,16 @@
 //! 1. **Masks**: the segmenter's thread mask in both views, over a region around the two ends
 //!    (the last exit point, known to the plan, and the swage, pinned by the needle estimate)
 //!    grown by `margin_m`; grown again while the thread runs off its edge.
-//! 2. **Centreline** in the left view, from the exit point's pixel to the swage's. Three
+//! 2. **Centreline** in the left view, from the exit point's pixel to the swage's. Four
 //!    candidates: the cheapest path through the mask, where a step on thread costs 1 and a
 //!    step off it `gap_cost` (A* over 2 × 2 blocks), which bridges what a jaw or the needle
-//!    hides with a straight line but cuts across loops where the thread touches itself; and
-//!    two walks along the thread (setting out along that path, or along the longest run of
-//!    thread from the exit), straight on through crossings, round sharp kinks onto thread
-//!    not yet walked, across short gaps, and bridged to the swage by the cheapest path where
-//!    they lose it. The candidate with the most thread on it, less twice its gaps, wins.
+//!    hides with a straight line but cuts across loops where the thread touches itself; two
+//!    walks along the thread from the exit (setting out along that path, or along the
+//!    longest run of thread from it), straight on through crossings, round sharp kinks (up
+//!    to 172°, a hairpin) onto thread not yet walked, across short gaps, and bridged to the
+//!    swage by the cheapest path where they lose it; and a walk the other way, from the
+//!    swage, bridged to the exit (for a thread whose first stretch from the tissue is
+//!    hidden). The candidate with the most thread on it, less twice its gaps, wins.
 //!    Off-thread steps are the hidden spans. Without an exit point (before the first
 //!    stitch) the path runs from the swage to the farthest thread it reaches.
 //! 3. **Correspondence**: along the path from its first end, each row the thread crosses
@@ -352,6 +354,28 @@ fn trace_in(
                 if sc > best.0 {
                     best = (sc, walked);
                 }
+            }
+            // And a walk from the swage towards the start, for a thread whose first stretch
+            // from the tissue is hidden (behind the raised wound, a jaw): bridged to the start
+            // where it loses the thread, then turned round.
+            let mut walked = walker.walk(goal, None, from_start);
+            let reached = walked
+                .last()
+                .is_some_and(|&(x, y, _)| (x - from_start.0).hypot(y - from_start.1) < 2.0);
+            if !reached {
+                let &(x, y, _) = walked
+                    .last()
+                    .unwrap_or(&(from_start.0, from_start.1, false));
+                let cells = grid.path(
+                    cell(x + f64::from(roi.x0), y + f64::from(roi.y0)),
+                    Some(cell(s[0], s[1])),
+                );
+                walked.extend(block_path(&cells).into_iter().skip(1));
+            }
+            walked.reverse();
+            let sc = score(&walked);
+            if sc > best.0 {
+                best = (sc, walked);
             }
             best.1
         }
@@ -929,6 +953,8 @@ const WALK_STEP_PX: f64 = 3.0;
 const WALK_GAP_PX: f64 = 24.0;
 /// The most the walk turns in one step, rad.
 const WALK_TURN: f64 = 1.05;
+/// The most it turns at a kink, rad (172°: a hairpin's strands 8° apart).
+const KINK_TURN: f64 = 3.0;
 
 impl Walker<'_> {
     fn on(&self, x: f64, y: f64) -> bool {
@@ -1067,19 +1093,24 @@ impl Walker<'_> {
                     Some((a, WALK_STEP_PX, false))
                 }
                 // No thread a step away within the turn: a sharp bend (a kink, the thread
-                // doubling back beside itself) onto thread the walk has not passed, the least
+                // doubling back beside itself) onto thread the walk has not passed, 9 to 18 px
+                // on (a hairpin's strands part slowly from its bend), the nearest and least
                 // turn first; else the nearest thread ahead across a gap.
-                None => (1..=14)
-                    .flat_map(|k| {
-                        let t = WALK_TURN + (2.8 - WALK_TURN) * f64::from(k) / 14.0;
-                        [dir + t, dir - t]
+                None => (3..=6)
+                    .flat_map(|m| {
+                        (1..=16).flat_map(move |k| {
+                            let t = WALK_TURN + (KINK_TURN - WALK_TURN) * f64::from(k) / 16.0;
+                            [
+                                (dir + t, WALK_STEP_PX * f64::from(m)),
+                                (dir - t, WALK_STEP_PX * f64::from(m)),
+                            ]
+                        })
                     })
-                    .find(|&a| {
-                        let d = 3.0 * WALK_STEP_PX;
+                    .find(|&(a, d)| {
                         let (x, y) = (p.0 + d * a.cos(), p.1 + d * a.sin());
                         self.on(x, y) && index(x, y).is_some_and(|i| !trail[i])
                     })
-                    .map(|a| (a, 3.0 * WALK_STEP_PX, false))
+                    .map(|(a, d)| (a, d, false))
                     .or_else(|| {
                         (2..=(WALK_GAP_PX / WALK_STEP_PX) as i32)
                             .flat_map(|m| {

@@ -296,3 +296,106 @@ fn a_thread_mostly_hidden_or_missing_fails_typed() {
         Err(PerceptionError::Config { .. })
     ));
 }
+
+/// The trace's length error against the truth's, and its points' median distance from it.
+fn length_and_median_error(t: &stitch_perception::ThreadTrace, truth: &[Point]) -> (f64, f64) {
+    let mut errors: Vec<f64> = t
+        .points
+        .iter()
+        .map(|p| distance_to_polyline(p, truth))
+        .collect();
+    errors.sort_by(f64::total_cmp);
+    let len = length(truth);
+    ((t.length_m - len) / len, errors[errors.len() / 2])
+}
+
+/// Straight stretches through `corners`, `n` points each.
+fn polyline(corners: &[Point], n: usize) -> Vec<Point> {
+    let mut out = vec![corners[0]];
+    for w in corners.windows(2) {
+        out.extend((1..=n).map(|k| w[0] + (w[1] - w[0]) * (k as f64 / n as f64)));
+    }
+    out
+}
+
+#[test]
+fn a_hairpin_of_170_degrees_is_walked_round_not_cut_short() {
+    let c = calib();
+    // Down 30 mm and back up at 10° to itself (the strands touch for the first 20 px from
+    // the bend and are 3 px apart 18 px from it), across, and down to a swage 6 mm from the
+    // bend: a cheapest path from the bend would bridge those 6 mm and leave out 60 mm.
+    // (Steep strands: rows cross them, so the views match.)
+    let a = Point::new(-0.005, -0.015, 0.15);
+    let apex = Point::new(-0.005, 0.015, 0.15);
+    let back = Point::new(0.0003, -0.015, 0.15);
+    let across = Point::new(0.012, -0.015, 0.15);
+    let b = Point::new(0.0, 0.019, 0.15);
+    let truth = polyline(&[a, apex, back, across, b], 200);
+    let left = draw(&c, &truth, 0.0, None, 11);
+    let right = draw(&c, &truth, c.baseline_m, None, 12);
+    let hint = ThreadHint {
+        start: Some(a),
+        swage: b,
+        length_m: None,
+    };
+    let t = traced(&c, &left, &right, &hint).expect("traced");
+    let (len_err, median) = length_and_median_error(&t, &truth);
+    assert!(
+        len_err.abs() < 0.05,
+        "length {} against {} ({:+.0} %)",
+        t.length_m,
+        length(&truth),
+        100.0 * len_err
+    );
+    assert!(median < 0.0005, "median error {median} m");
+}
+
+#[test]
+fn a_loop_whose_start_is_hidden_is_walked_from_the_swage_not_cut_across() {
+    let c = calib();
+    // A trochoid with one loop: the thread crosses itself, and a cheapest path between the
+    // ends would cut across the crossing. The first few millimetres from the tissue are
+    // behind a box, so no walk can set out from the start.
+    let (len, r) = (0.05, 0.012);
+    let truth: Vec<Point> = (0..=600)
+        .map(|k| {
+            let s = f64::from(k) / 600.0;
+            let phase = std::f64::consts::TAU * s;
+            Point::new(
+                -0.025 + len * s + r * phase.sin(),
+                0.01 - r * (1.0 - phase.cos()),
+                0.15 + 0.005 * (std::f64::consts::PI * s).sin(),
+            )
+        })
+        .collect();
+    let (a, b) = (truth[0], truth[truth.len() - 1]);
+    let u = c.fx * a.x / a.z + c.cx;
+    let v = c.fy * a.y / a.z + c.cy;
+    let cover = |shift: f64| {
+        let du = c.fx * shift / a.z;
+        Some([u - 20.0 - du, v - 14.0, u + 14.0 - du, v + 14.0])
+    };
+    let left = draw(&c, &truth, 0.0, cover(0.0), 13);
+    let right = draw(&c, &truth, c.baseline_m, cover(c.baseline_m), 14);
+    let hint = ThreadHint {
+        start: Some(a),
+        swage: b,
+        length_m: None,
+    };
+    let t = traced(&c, &left, &right, &hint).expect("traced");
+    let (len_err, median) = length_and_median_error(&t, &truth);
+    assert!(
+        len_err.abs() < 0.08,
+        "length {} against {} ({:+.0} %)",
+        t.length_m,
+        length(&truth),
+        100.0 * len_err
+    );
+    assert!(median < 0.0005, "median error {median} m");
+    // The hidden stretch is the first one, at the start.
+    assert!(
+        t.hidden.first().is_some_and(|h| h[0] < 0.001),
+        "hidden {:?}",
+        t.hidden
+    );
+}
