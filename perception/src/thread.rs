@@ -313,6 +313,9 @@ fn trace_in(
         // as it goes; the cheapest path bridges the rest to the swage.
         Some(s) => {
             let walker = Walker { mask: &mask, w, h };
+            let mut walk_cells = Vec::new();
+            // The last bridge from the swage: the two walks often lose the thread at the same place.
+            let mut bridged: Option<(usize, Vec<usize>)> = None;
             let goal = local(swage[0], swage[1]);
             let score = |path: &[(f64, f64, bool)]| -> f64 {
                 path.windows(2)
@@ -337,16 +340,21 @@ fn trace_in(
             // wins: a walk round a loop beats a path cutting across it.
             let mut best = (score(&first), first);
             for toward in [Some(ahead), None] {
-                let mut walked = walker.walk(from_start, toward, goal);
+                let mut walked = walker.walk(from_start, toward, goal, &mut walk_cells);
                 let reached = walked
                     .last()
                     .is_some_and(|&(x, y, _)| (x - goal.0).hypot(y - goal.1) < 2.0);
                 if !reached {
                     let &(x, y, _) = walked.last().unwrap_or(&(goal.0, goal.1, false));
-                    let mut cells = grid.path(
-                        from,
-                        Some(cell(x + f64::from(roi.x0), y + f64::from(roi.y0))),
-                    );
+                    let to = cell(x + f64::from(roi.x0), y + f64::from(roi.y0));
+                    let mut cells = match &bridged {
+                        Some((t, c)) if *t == to => c.clone(),
+                        _ => {
+                            let c = grid.path(from, Some(to));
+                            bridged = Some((to, c.clone()));
+                            c
+                        }
+                    };
                     cells.reverse();
                     walked.extend(block_path(&cells).into_iter().skip(1));
                 }
@@ -358,7 +366,7 @@ fn trace_in(
             // And a walk from the swage towards the start, for a thread whose first stretch
             // from the tissue is hidden (behind the raised wound, a jaw): bridged to the start
             // where it loses the thread, then turned round.
-            let mut walked = walker.walk(goal, None, from_start);
+            let mut walked = walker.walk(goal, None, from_start, &mut walk_cells);
             let reached = walked
                 .last()
                 .is_some_and(|&(x, y, _)| (x - from_start.0).hypot(y - from_start.1) < 2.0);
@@ -953,6 +961,8 @@ const WALK_STEP_PX: f64 = 3.0;
 const WALK_GAP_PX: f64 = 24.0;
 /// The most the walk turns in one step, rad.
 const WALK_TURN: f64 = 1.05;
+/// A walk's mark on a pixel it has passed.
+const TRAIL: u8 = 0x80;
 /// The most it turns at a kink, rad (172°: a hairpin's strands 8° apart).
 const KINK_TURN: f64 = 3.0;
 
@@ -1004,6 +1014,7 @@ impl Walker<'_> {
         start: (f64, f64),
         ahead: Option<(f64, f64)>,
         goal: (f64, f64),
+        cells: &mut Vec<u8>,
     ) -> Vec<(f64, f64, bool)> {
         let Some(mut p) = self.nearest(start, 8) else {
             return vec![(start.0, start.1, false)];
@@ -1024,15 +1035,18 @@ impl Walker<'_> {
         };
         let goal_r = 4.0 * WALK_STEP_PX;
         let budget = (20 * (self.w + self.h)) as f64 / WALK_STEP_PX * 4.0;
-        let mut visited = vec![0u16; self.w * self.h];
-        // The pixels the walk has passed, so that a sharp turn does not lead back.
-        let mut trail = vec![false; self.w * self.h];
+        // Per pixel: how often a step landed on it (the low bits), and whether the walk has
+        // passed it (`TRAIL`, so that a sharp turn does not lead back). The caller's buffer,
+        // cleared: walks one after another reuse its memory.
+        cells.clear();
+        cells.resize(self.w * self.h, 0);
+        let trail = cells;
         let index = |x: f64, y: f64| -> Option<usize> {
             (x >= 0.0 && y >= 0.0 && (x as usize) < self.w && (y as usize) < self.h)
                 .then(|| y as usize * self.w + x as usize)
         };
         let push =
-            |out: &mut Vec<(f64, f64, bool)>, trail: &mut Vec<bool>, q: (f64, f64), gap: bool| {
+            |out: &mut Vec<(f64, f64, bool)>, trail: &mut Vec<u8>, q: (f64, f64), gap: bool| {
                 let &(x0, y0, _) = out.last().expect("a first point");
                 let n = (q.0 - x0).hypot(q.1 - y0).ceil().max(1.0) as usize;
                 for k in 1..=n {
@@ -1043,17 +1057,17 @@ impl Walker<'_> {
                     // along the thread's other edge.
                     for (dx, dy) in BRUSH {
                         if let Some(i) = index(x + dx, y + dy) {
-                            trail[i] = true;
+                            trail[i] |= TRAIL;
                         }
                     }
                 }
             };
-        push(&mut out, &mut trail, p, false);
+        push(&mut out, trail, p, false);
         let mut steps = 0.0;
         while steps < budget {
             steps += 1.0;
             if (p.0 - goal.0).hypot(p.1 - goal.1) < goal_r {
-                push(&mut out, &mut trail, goal, !self.on(goal.0, goal.1));
+                push(&mut out, trail, goal, !self.on(goal.0, goal.1));
                 return out;
             }
             // Directions within the turn limit, in order, and whether each stays on thread.
@@ -1108,7 +1122,7 @@ impl Walker<'_> {
                     })
                     .find(|&(a, d)| {
                         let (x, y) = (p.0 + d * a.cos(), p.1 + d * a.sin());
-                        self.on(x, y) && index(x, y).is_some_and(|i| !trail[i])
+                        self.on(x, y) && index(x, y).is_some_and(|i| trail[i] & TRAIL == 0)
                     })
                     .map(|(a, d)| (a, d, false))
                     .or_else(|| {
@@ -1129,13 +1143,13 @@ impl Walker<'_> {
             // Round a closed loop too often: lost.
             let (qx, qy) = (q.0.floor() as usize, q.1.floor() as usize);
             if qx < self.w && qy < self.h {
-                let v = &mut visited[qy * self.w + qx];
+                let v = &mut trail[qy * self.w + qx];
                 *v += 1;
-                if *v > 3 {
+                if *v & !TRAIL > 3 {
                     break;
                 }
             }
-            push(&mut out, &mut trail, q, gap);
+            push(&mut out, trail, q, gap);
             dir = a;
             p = q;
         }
