@@ -234,12 +234,17 @@ pub struct CinchParams {
     pub l_des_m: f64,
     /// l_each, m.
     pub l_each_m: f64,
+    /// The clearing push after the pull, with the needle at the handover point: how far past
+    /// the swage the right jaw pushes the hanging thread, m (0: none, the paper's cinch).
+    #[serde(default)]
+    pub clear_m: f64,
 }
 impl Default for CinchParams {
     fn default() -> Self {
         Self {
             l_des_m: CINCH_L_DES_M,
             l_each_m: CINCH_L_EACH_M,
+            clear_m: 0.0,
         }
     }
 }
@@ -431,6 +436,7 @@ impl StepKind {
             (StepKind::Extract(p), "pull") => L(p.pull_m),
             (StepKind::Cinch(p), "l_des") => L(p.l_des_m),
             (StepKind::Cinch(p), "l_each") => L(p.l_each_m),
+            (StepKind::Cinch(p), "clear") => L(p.clear_m),
             (StepKind::Handover(p), "retries") => C(i64::from(p.retries)),
             (StepKind::Handover(p), "offset") => L(p.offset_m),
             (StepKind::Handover(p), "jitter") => L(p.jitter_m),
@@ -479,6 +485,7 @@ impl StepKind {
             (StepKind::Extract(p), "pull", L(v)) => p.pull_m = v,
             (StepKind::Cinch(p), "l_des", L(v)) => p.l_des_m = v,
             (StepKind::Cinch(p), "l_each", L(v)) => p.l_each_m = v,
+            (StepKind::Cinch(p), "clear", L(v)) => p.clear_m = v,
             (StepKind::Handover(p), "retries", C(v)) => p.retries = sat8(v),
             (StepKind::Handover(p), "offset", L(v)) => p.offset_m = v,
             (StepKind::Handover(p), "jitter", L(v)) => p.jitter_m = v,
@@ -621,6 +628,13 @@ pub fn param_specs(name: &str) -> &'static [ParamSpec] {
             "thread pulled for the first suture (β for i = 1)"
         ),
         spec!("l_each", Length, 0.0, 0.10, "thread one suture uses"),
+        spec!(
+            "clear",
+            Length,
+            0.0,
+            0.05,
+            "then, the thread hung vertical from the swage over the last stitch, the right jaw pushes it this far past the vertical (0: no push)"
+        ),
     ];
     const HANDOVER: &[ParamSpec] = &[
         spec!(
@@ -746,6 +760,7 @@ mod tests {
         let c = CinchParams {
             l_des_m: 0.12,
             l_each_m: 0.02,
+            clear_m: 0.0,
         };
         assert!((c.beta_m(1) - 0.12).abs() < 1e-12);
         assert!((c.beta_m(6) - 0.02).abs() < 1e-12);

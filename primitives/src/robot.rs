@@ -49,6 +49,17 @@ const SWEEP_BEHIND_M: f64 = 0.005;
 /// How far a sweep backs off from the thread it pushed before lifting (modelling choice), m.
 const SWEEP_BACK_OFF_M: f64 = 0.005;
 
+/// Where a cinch's clearing push starts, on the right jaw's side of the swage (modelling
+/// choice), m.
+const CLEAR_START_M: f64 = 0.015;
+/// The clearing push runs at least this far below the swage (modelling choice), m.
+const CLEAR_BELOW_SWAGE_M: f64 = 0.02;
+/// The clearing push's least height above the tissue (modelling choice), m.
+const CLEAR_ABOVE_TISSUE_M: f64 = 0.006;
+/// The swage's least height above the tissue while the thread hangs for the push, room for
+/// the jaw under the needle's arc (modelling choice), m.
+const CLEAR_SWAGE_ABOVE_TISSUE_M: f64 = 0.03;
+
 /// The longest pull a cinch makes in one motion (modelling choice: a PSM's comfortable reach
 /// above the phantom), m.
 pub const CINCH_MAX_PULL_M: f64 = 0.15;
@@ -149,6 +160,9 @@ pub struct RobotPrimitives {
     last_estimate: Option<NeedleEstimate>,
     /// The end the left jaw grasped at the last extraction.
     left_end: NeedleEnd,
+    /// Where the swage sat in the left tool's frame when the last extraction ended (from its
+    /// last needle estimate): a cinch's clearing push finds the hanging thread from it.
+    left_swage: Option<Point>,
     /// Why the estimator gave no estimate, each cycle of the current step it gave none.
     unseen: Vec<String>,
     /// Where the free thread leaves the suture line: the exit of the last stitch the needle
@@ -331,6 +345,7 @@ impl RobotPrimitives {
             previous_point: None,
             last_estimate: None,
             left_end: NeedleEnd::Tip,
+            left_swage: None,
             unseen: Vec::new(),
         }
     }
@@ -701,6 +716,8 @@ impl RobotPrimitives {
             return Err(Halt::with(kind, measured));
         }
         self.thread_from = self.last_point.as_ref().map(|wp| wp.exit);
+        let left = self.rig.left.measured_cp().map_err(fault)?;
+        self.left_swage = Some(left.inverse() * swage2);
         Ok(measured)
     }
 
@@ -726,14 +743,87 @@ impl RobotPrimitives {
         };
         if let Some(o) = self.rig.observer.as_mut() {
             o.cinched(beta);
-            measured.thread_left_m = Some(o.thread_left_m()).filter(|m| m.is_finite());
         }
         let present = pose(self.rig.layout.handover_point, tool.rotation);
-        self.go(c, Hand::Left, &[present])?;
+        if p.clear_m > 0.0 {
+            self.clear_thread(c, p.clear_m, present)?;
+        } else {
+            self.go(c, Hand::Left, &[present])?;
+        }
+        if let Some(o) = self.rig.observer.as_mut() {
+            measured.thread_left_m = Some(o.thread_left_m()).filter(|m| m.is_finite());
+        }
         match self.problem() {
             Some(kind) => Err(Halt::with(kind, measured)),
             None => Ok(measured),
         }
+    }
+
+    /// The paper's future work, a cinch before the handover ("the left gripper holds the
+    /// needle at the handover position such that a portion of the thread would be vertical;
+    /// the other gripper would then move horizontally to push the vertical thread component
+    /// to pull out additional thread and clear it from the grasping workspace"). The left
+    /// holds the needle at the handover height (higher if the swage would be less than 3 cm
+    /// above the tissue) with its swage straight above the stitch the thread leaves, so the
+    /// thread hangs vertical; the closed right jaw comes in below the
+    /// needle from its own side and pushes it horizontally, `clear_m` past the swage's
+    /// vertical; it backs off, lifts and goes back to its ready position, and the left brings
+    /// the needle to `present`, the handover point. The swage is where the last extraction's
+    /// estimate put it in the left jaw (no new perception query: a dropout here would end the
+    /// cinch). Without a stitch to hang over (none known), the push runs straight below the
+    /// swage at the handover point.
+    fn clear_thread(&mut self, c: &mut dyn StepControl, clear_m: f64, present: Pose) -> Step<()> {
+        let in_jaw = self.left_swage.unwrap_or_else(Point::origin);
+        let at_present = present * in_jaw;
+        // Raised where the swage would hang too low for the jaw to pass between the needle
+        // and the tissue.
+        let hold = match self.thread_from {
+            Some(exit) => shifted(
+                &present,
+                Vector::new(
+                    exit.x - at_present.x,
+                    exit.y - at_present.y,
+                    (exit.z + CLEAR_SWAGE_ABOVE_TISSUE_M - at_present.z).max(0.0),
+                ),
+            ),
+            None => present,
+        };
+        self.go(c, Hand::Left, &[hold])?;
+        let swage = hold * in_jaw;
+        let right = self.rig.right.measured_cp().map_err(fault)?;
+        let from_right =
+            horizontal(Point::from(right.translation.vector) - swage).unwrap_or_else(Vector::x);
+        // 40 % of the way up from the tissue to the swage, at least 2 cm below the swage
+        // (under the needle's arc), and never less than 6 mm above the tissue.
+        let tissue_z = self
+            .thread_from
+            .map_or(swage.z - 2.0 * CLEAR_BELOW_SWAGE_M, |e| e.z);
+        let z = (tissue_z + 0.4 * (swage.z - tissue_z))
+            .min(swage.z - CLEAR_BELOW_SWAGE_M)
+            .max(tissue_z + CLEAR_ABOVE_TISSUE_M);
+        let under = Point::new(swage.x, swage.y, z);
+        let rot = right.rotation;
+        let start = pose(under + from_right * CLEAR_START_M, rot);
+        let end = pose(under - from_right * clear_m, rot);
+        // Closed before it moves (a plan without a sweep leaves it open): a jaw closing near
+        // the thread would catch it.
+        self.jaw(c, Hand::Right, JAW_CLOSED_RAD)?;
+        self.go(
+            c,
+            Hand::Right,
+            &[shifted(&start, Vector::z() * RETREAT_M), start, end],
+        )?;
+        // Back off from the thread before lifting, as a sweep does: lifting at once would
+        // carry thread lying against the jaw.
+        let back = shifted(&end, from_right * SWEEP_BACK_OFF_M);
+        let ready = pose(self.rig.layout.right_ready, rot);
+        self.go(
+            c,
+            Hand::Right,
+            &[back, shifted(&back, Vector::z() * RETREAT_M), ready],
+        )?;
+        self.go(c, Hand::Left, &[present])?;
+        Ok(())
     }
 
     /// Handover. Commit point: the left jaw opening to let go of the needle the right jaw
