@@ -314,7 +314,8 @@ fn trace_in(
         Some(s) => {
             let walker = Walker { mask: &mask, w, h };
             let mut walk_cells = Vec::new();
-            // The last bridge from the swage: the two walks often lose the thread at the same place.
+            // The last bridge from the swage: the two walks often lose the thread at the same
+            // place.
             let mut bridged: Option<(usize, Vec<usize>)> = None;
             let goal = local(swage[0], swage[1]);
             let score = |path: &[(f64, f64, bool)]| -> f64 {

@@ -234,8 +234,9 @@ pub struct CinchParams {
     pub l_des_m: f64,
     /// l_each, m.
     pub l_each_m: f64,
-    /// The clearing push after the pull, with the needle at the handover point: how far past
-    /// the swage the right jaw pushes the hanging thread, m (0: none, the paper's cinch).
+    /// The clearing push after the pull, the thread hung vertical from the swage over the last
+    /// stitch: how far past that vertical the right jaw pushes it, m (0: none, the paper's
+    /// cinch).
     #[serde(default)]
     pub clear_m: f64,
 }
