@@ -12,7 +12,7 @@ use stitch_eval::own as evaluate;
 use stitch_eval::{Accuracy, FrameResult, failure_kind, percentile};
 use stitch_perception::{
     JawHint, LeftRight, MaskRowMatcher, NeedleEnd, NeedlePipeline, PerceptionError, Rect,
-    SemiGlobalMatcher, SgmPaths, StereoMatcher,
+    SemiGlobalMatcher, SgmPaths, StereoMatcher, TissueHint,
 };
 use stitch_robot::{Needle, Pose, RgbImage, StereoCalibration};
 use stitch_sim::{CameraConfig, MockDvrk, SceneConfig, StereoRenderer, Streams};
@@ -45,6 +45,14 @@ pub enum PerceiveCommand {
         /// Which needle end the jaw holds it nearer to.
         #[arg(long, value_enum, requires = "jaw")]
         holds: Option<HeldEnd>,
+        /// With --exit: the needle is lodged in tissue, through this entry hole (robot frame,
+        /// metres: x,y,z); the pose is the circle through both holes that the visible wire
+        /// fits best, as a mission's extraction estimates it.
+        #[arg(long, value_parser = parse_point, allow_hyphen_values = true, requires = "exit", conflicts_with = "jaw")]
+        entry: Option<[f64; 3]>,
+        /// With --entry: the exit hole (robot frame, metres: x,y,z).
+        #[arg(long, value_parser = parse_point, allow_hyphen_values = true, requires = "entry")]
+        exit: Option<[f64; 3]>,
         #[command(flatten)]
         options: PipelineOptions,
     },
@@ -428,20 +436,31 @@ pub fn perceive(command: PerceiveCommand) -> anyhow::Result<u8> {
             calib,
             jaw,
             holds,
+            entry,
+            exit,
             options,
         } => {
             let c = read_calibration(&calib)?;
             let (l, r) = (read_png(&left)?, read_png(&right)?);
             let p = pipeline(c, &options)?;
+            let point = |a: [f64; 3]| stitch_robot::Point::new(a[0], a[1], a[2]);
             let hint = jaw.zip(holds).map(|(j, h)| JawHint {
-                jaw: stitch_robot::Point::new(j[0], j[1], j[2]),
+                jaw: point(j),
                 end: match h {
                     HeldEnd::Swage => NeedleEnd::Swage,
                     HeldEnd::Tip => NeedleEnd::Tip,
                 },
             });
+            let holes = entry.zip(exit).map(|(e, x)| TissueHint {
+                entry: point(e),
+                exit: point(x),
+            });
             let mut out = std::io::stdout().lock();
-            match p.estimate(&l, &r, hint.as_ref(), options.seed) {
+            let estimate = match &holes {
+                Some(h) => p.estimate_in_tissue(&l, &r, h, options.seed),
+                None => p.estimate(&l, &r, hint.as_ref(), options.seed),
+            };
+            match estimate {
                 Ok(o) => {
                     let g = p.needle.in_world(&o.pose);
                     let t = o.pose.translation.vector;

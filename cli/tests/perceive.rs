@@ -105,6 +105,48 @@ fn a_rendered_pair_on_disk_gives_the_needle_pose_within_a_millimetre() {
         "-0.01,0.02,-0.09",
     ]);
     assert_eq!(out.status.code(), Some(2), "{}", text(&out.stderr));
+    // The needle lodged in tissue: holes no needle of its radius passes through both of are
+    // a typed failure that says so; an entry without an exit, or with a jaw, is a
+    // command-line error. (`eval/tests/pipeline.rs` finds needles through their holes.)
+    let (left, right) = (d.join("left.png"), d.join("right.png"));
+    let needle = |extra: &[&str]| {
+        let mut args = vec![
+            "perceive",
+            "needle",
+            s(&left),
+            s(&right),
+            "--calib",
+            s(&calib),
+        ];
+        args.extend_from_slice(extra);
+        stitch(&args)
+    };
+    let out = needle(&["--entry=-0.02,0,-0.12", "--exit=0.02,0,-0.12"]);
+    assert_eq!(out.status.code(), Some(6), "{}", text(&out.stderr));
+    let failure: serde_json::Value = serde_json::from_slice(&out.stdout).expect("JSON");
+    assert!(
+        failure["message"]
+            .as_str()
+            .is_some_and(|m| m.contains("cannot pass through both")),
+        "{failure}"
+    );
+    for extra in [
+        &["--entry=-0.005,0,-0.12"][..],
+        &[
+            "--entry=-0.005,0,-0.12",
+            "--exit=0.005,0,-0.12",
+            "--jaw=0,0,-0.1",
+            "--holds=tip",
+        ][..],
+    ] {
+        let out = needle(extra);
+        assert_eq!(
+            out.status.code(),
+            Some(2),
+            "{extra:?}: {}",
+            text(&out.stderr)
+        );
+    }
 }
 
 #[test]

@@ -1180,7 +1180,15 @@ impl NeedlePipeline {
             whole: true,
             ..self.region_near(&mid)
         };
-        let (_, _, cloud, mut diag) = self.cloud(left, right, Some(region), 0)?.ok_or(no_left())?;
+        let (_, rm, cloud, mut diag) = self.cloud(left, right, Some(region), 0)?.ok_or(no_left())?;
+        // Wire one view sees and the other does not (a jaw just opened off the needle hides it
+        // from the right camera) gets disparities matched to whatever lies there: kept only
+        // points whose match in the right view is needle too.
+        let cloud: Vec<Point> = cloud
+            .into_iter()
+            .filter(|q| self.needle_in_right(&rm, q))
+            .collect();
+        diag.cloud_points = cloud.len();
         let t3 = Instant::now();
         if cloud.len() < p.min_points_in_tissue {
             return Err(PerceptionError::TooFewPoints {
@@ -1340,6 +1348,25 @@ impl NeedlePipeline {
             confidence,
             diagnostics: diag,
         })
+    }
+
+    /// Whether the right view's needle mask holds robot-frame point `q` (within a pixel
+    /// along its row).
+    fn needle_in_right(&self, rm: &Masks, q: &Point) -> bool {
+        let c = &self.calibration;
+        let Some([u, v]) = c.left_pixel(q) else {
+            return false;
+        };
+        let z = (c.camera_to_robot.inverse() * q).z;
+        if z <= 0.0 {
+            return false;
+        }
+        let ur = u - c.fx * c.baseline_m / z;
+        if ur < 1.0 || v < 0.0 {
+            return false;
+        }
+        let (x, y) = (ur.floor() as u32, v.floor() as u32);
+        (x - 1..=x + 1).any(|x| rm.is_needle(x, y))
     }
 
     /// Thread pixels in the left view within `swage_search_m` of a robot-frame end of the
