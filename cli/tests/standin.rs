@@ -229,13 +229,32 @@ fn a_whole_mission_without_the_simulator_runs_against_the_cyclone_console() {
         "the insertion ran:\n{}",
         ran.journal
     );
+    // The right arm inserts and sweeps. The left arm's first motion is the extraction's
+    // grasp, which needs the needle seen lodged through the holes; the camera's needle never
+    // moves (nothing simulates it: it hangs where the mock's right jaw starts), so the
+    // extraction refuses it (a perception dropout, as at a bench) and the left arm is only
+    // held. (Until 2026-12-05 a circle fitted freely was taken wherever it lay, and the
+    // hanging needle was now and then "found" in the tissue.)
+    let c = &status["PSM1"]["counts"];
+    assert!(c["move_cp"].as_u64() > Some(0), "PSM1 moved: {status}");
+    assert!(
+        c["jaw/move_jp"].as_u64() > Some(0),
+        "PSM1's jaw moved: {status}"
+    );
+    assert_eq!(
+        status["PSM2"]["counts"]["move_cp"].as_u64(),
+        Some(0),
+        "PSM2 was not moved: {status}"
+    );
+    assert!(
+        ran.journal.contains(
+            r#""primitive":"extract","attempt":0,"outcome":{"result":"failed","kind":"perception_dropout""#
+        ),
+        "the extraction did not see the needle in tissue:\n{}",
+        ran.journal
+    );
     for arm in ["PSM1", "PSM2"] {
         let c = &status[arm]["counts"];
-        assert!(c["move_cp"].as_u64() > Some(0), "{arm} moved: {status}");
-        assert!(
-            c["jaw/move_jp"].as_u64() > Some(0),
-            "{arm}'s jaw moved: {status}"
-        );
         assert_eq!(c["refused"].as_u64(), Some(0), "{arm}: {status}");
         assert_eq!(status[arm]["ratio"].as_f64(), Some(0.2), "{arm}: {status}");
         assert_eq!(status[arm]["busy"], false, "{arm} ended idle: {status}");

@@ -172,6 +172,16 @@ fn a_needle_lodged_in_tissue_is_found_through_its_holes() {
         .expect("found");
     let e = stitch_perception::PoseError::between(&needle, &out.pose, &truth);
     assert!(e.tip_m < 0.001 && e.center_m < 0.001, "{e:?}");
+    // A needle seen clearly, but 1 cm from the holes it is said to be in, is not the needle
+    // in them: refused, not placed there.
+    let beside = TissueHint {
+        entry: entry + Vector::new(0.0, 0.01, 0.0),
+        exit: exit + Vector::new(0.0, 0.01, 0.0),
+    };
+    let err = p
+        .estimate_in_tissue(&pair.left, &pair.right, &beside, 1)
+        .expect_err("not in those holes");
+    assert!(matches!(err, PerceptionError::BadFit { .. }), "{err}");
     // Holes a needle cannot pass through both of are refused.
     let far = TissueHint {
         entry: Point::new(-0.02, 0.0, -0.12),

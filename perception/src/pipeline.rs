@@ -83,6 +83,10 @@ pub struct PipelineParams {
     pub min_points_in_tissue: usize,
     /// Least needle seen past a hole to place its end, in tissue, m.
     pub min_tip_seen_m: f64,
+    /// A needle in tissue passes its holes: a circle fitted freely to what is seen is taken
+    /// only if it passes within this of both (the plan's holes, which the needle misses by a
+    /// few millimetres at most: on the mock, up to about 2 mm once pushed through), m.
+    pub max_hole_miss_m: f64,
     /// Estimates less confident than this are refused.
     pub min_confidence: f64,
     /// Least share of the arc whose wire the refined circle runs down in both views for
@@ -129,6 +133,7 @@ impl Default for PipelineParams {
             jaw_margin_rad: 30f64.to_radians(),
             min_points_in_tissue: 15,
             min_tip_seen_m: 0.002,
+            max_hole_miss_m: 0.005,
             min_confidence: 0.5,
             min_image_support: 0.8,
             image_tolerance_px: 1.5,
@@ -1233,6 +1238,11 @@ impl NeedlePipeline {
         let enough = |n: usize| {
             n >= p.min_points_in_tissue && n as f64 >= p.min_inlier_share * cloud.len() as f64
         };
+        // A circle fitted with no regard to the holes may be another needle's, or one not in
+        // the tissue at all (still hanging where a jaw left it): it must pass both holes.
+        let free = free.filter(|(c, _)| {
+            c.distance(&e) <= p.max_hole_miss_m && c.distance(&x) <= p.max_hole_miss_m
+        });
         let (circle, inliers) = match free {
             Some((c, inl)) if enough(inl.len()) => (c, inl),
             _ => {
