@@ -46,8 +46,8 @@ pub enum PerceiveCommand {
         #[arg(long, value_enum, requires = "jaw")]
         holds: Option<HeldEnd>,
         /// With --exit: the needle is lodged in tissue, through this entry hole (robot frame,
-        /// metres: x,y,z); the pose is the circle through both holes that the visible wire
-        /// fits best, as a mission's extraction estimates it.
+        /// metres: x,y,z); the pose is the circle of the wire seen, through or within 5 mm of
+        /// both holes, as a mission's extraction estimates it (docs/perception.md).
         #[arg(long, value_parser = parse_point, allow_hyphen_values = true, requires = "exit", conflicts_with = "jaw")]
         entry: Option<[f64; 3]>,
         /// With --entry: the exit hole (robot frame, metres: x,y,z).
