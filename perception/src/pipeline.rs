@@ -1189,9 +1189,10 @@ impl NeedlePipeline {
         // Wire one view sees and the other does not (a jaw just opened off the needle hides it
         // from the right camera) gets disparities matched to whatever lies there: kept only
         // points whose match in the right view is needle too.
+        let to_camera = self.calibration.camera_to_robot.inverse();
         let cloud: Vec<Point> = cloud
             .into_iter()
-            .filter(|q| self.needle_in_right(&rm, q))
+            .filter(|q| self.needle_in_right(&rm, &(to_camera * q)))
             .collect();
         diag.cloud_points = cloud.len();
         let t3 = Instant::now();
@@ -1360,18 +1361,15 @@ impl NeedlePipeline {
         })
     }
 
-    /// Whether the right view's needle mask holds robot-frame point `q` (within a pixel
+    /// Whether the right view's needle mask holds camera-frame point `q` (within a pixel
     /// along its row).
     fn needle_in_right(&self, rm: &Masks, q: &Point) -> bool {
         let c = &self.calibration;
-        let Some([u, v]) = c.left_pixel(q) else {
-            return false;
-        };
-        let z = (c.camera_to_robot.inverse() * q).z;
-        if z <= 0.0 {
+        if q.z <= 1e-6 {
             return false;
         }
-        let ur = u - c.fx * c.baseline_m / z;
+        let ur = c.fx * (q.x - c.baseline_m) / q.z + c.cx;
+        let v = c.fy * q.y / q.z + c.cy;
         if ur < 1.0 || v < 0.0 {
             return false;
         }
