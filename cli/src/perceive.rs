@@ -107,6 +107,10 @@ pub enum PerceiveCommand {
         /// between, or nearest (the needle pipeline's).
         #[arg(long, value_enum, default_value_t = LeftRightArg::Winners)]
         left_right: LeftRightArg,
+        /// Dense matching: leave out the 3×3 median filter that follows the checks (a pixel
+        /// with no answer counts as larger than any; docs/perception.md).
+        #[arg(long)]
+        no_median: bool,
         #[command(flatten)]
         options: PipelineOptions,
     },
@@ -502,6 +506,7 @@ pub fn perceive(command: PerceiveCommand) -> anyhow::Result<u8> {
             uniqueness,
             lr_max_diff,
             left_right,
+            no_median,
             options,
         } => {
             let c = calib.as_deref().map(read_calibration).transpose()?;
@@ -561,6 +566,7 @@ pub fn perceive(command: PerceiveCommand) -> anyhow::Result<u8> {
                         PathsArg::Five => SgmPaths::Five,
                         PathsArg::Eight => SgmPaths::Eight,
                     },
+                    median: !no_median,
                     ..SemiGlobalMatcher::default()
                 };
                 let region = roi.unwrap_or(Rect::full(w, h));

@@ -373,10 +373,16 @@ fn dense_disparity_on_a_textured_pair_without_a_needle_matches_the_known_dispari
         &["--calib", s(&calib), "--depth-range", "0.5,1.5"],
     ];
     for range in ranges {
-        for paths in ["five", "four", "eight"] {
+        for (paths, filter) in [
+            ("five", None),
+            ("five", Some("--no-median")),
+            ("four", None),
+            ("eight", None),
+        ] {
             let mut args = vec!["perceive", "disparity", s(&l), s(&r), "--out", s(&pfm)];
             args.extend_from_slice(range);
             args.extend_from_slice(&["--paths", paths]);
+            args.extend(filter);
             let out = stitch(&args);
             assert_eq!(out.status.code(), Some(0), "{}", text(&out.stderr));
             assert!(
@@ -410,7 +416,7 @@ fn dense_disparity_on_a_textured_pair_without_a_needle_matches_the_known_dispari
             errors.sort_by(f32::total_cmp);
             let median = errors[errors.len() / 2];
             let what = format!(
-                "{range:?} {paths}: {right} of {seen} within 1 px, {wrong} off by more than 2, median error {median:.3} px"
+                "{range:?} {paths} {filter:?}: {right} of {seen} within 1 px, {wrong} off by more than 2, median error {median:.3} px"
             );
             eprintln!("{what}");
             assert!(right * 100 >= seen * 90, "{what}");

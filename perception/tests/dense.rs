@@ -1,6 +1,6 @@
 //! Dense matching on any input a user can give it: any image size, region and disparity
-//! range, along any paths, with any left-right check, answers a map or a configuration
-//! error with the reason; it never panics.
+//! range, along any paths, with any left-right check, filtered or not, answers a map or a
+//! configuration error with the reason; it never panics.
 
 use proptest::prelude::*;
 use stitch_perception::{LeftRight, PerceptionError, Rect, SemiGlobalMatcher, SgmPaths};
@@ -27,7 +27,7 @@ proptest! {
     fn any_region_and_range_gives_a_map_or_a_reason(
         w in 1u32..40, h in 1u32..24, (a, b, c, e) in (any::<u32>(), any::<u32>(), any::<u32>(), any::<u32>()),
         lo in 0u32..30, span in 0u32..60, paths in 0usize..3, left_right in 0usize..3,
-        parallel: bool, seed: u64, other_size in proptest::bool::weighted(0.1),
+        parallel: bool, median: bool, seed: u64, other_size in proptest::bool::weighted(0.1),
     ) {
         let left = image(w, h, seed);
         let right = if other_size { image(w + 1, h, !seed) } else { image(w, h, !seed) };
@@ -35,6 +35,7 @@ proptest! {
             around_mask_px: None,
             paths: [SgmPaths::Four, SgmPaths::Five, SgmPaths::Eight][paths],
             left_right: [LeftRight::Nearest, LeftRight::Between, LeftRight::Winners][left_right],
+            median,
             ..SemiGlobalMatcher::default()
         };
         // Mostly inside the image, now and then past its edge or empty.
