@@ -123,10 +123,12 @@ def tsukuba():
 
 # name, loader, disparity range searched (min, count: OpenCV wants a multiple of 16), and
 # whether the matcher's settings were chosen looking at it (the others are held out).
+# Tsukuba was held out until 2026-12-05, when its maps were looked at while choosing the
+# 3×3 median (its refusals were scattered single pixels): it is a dev pair since.
 PAIRS = [
     ("Motorcycle", motorcycle, 0, 64, True),
     ("Cones", cones, 0, 64, False),
-    ("Tsukuba", tsukuba, 0, 16, False),
+    ("Tsukuba", tsukuba, 0, 16, True),
     ("Aloe", aloe, 0, 224, False),
 ]
 
@@ -171,13 +173,13 @@ def score(d, gt):
     }
 
 
-def ours(binary, left_png, right_png, lo, hi, paths, runs, out):
+def ours(binary, left_png, right_png, lo, hi, paths, extra, runs, out):
     times = []
     for _ in range(runs):
         r = subprocess.run(
             [binary, "perceive", "disparity", left_png, right_png, "--out", out,
              "--min-disparity", str(lo), "--max-disparity", str(hi),
-             "--paths", paths, "--single-thread"],
+             "--paths", paths, "--single-thread", *extra],
             capture_output=True, text=True,
         )
         if r.returncode != 0:
@@ -222,9 +224,11 @@ def main():
             Image.fromarray(right).save(rp)
             hi = lo + count - 1
             rows = []
-            for paths in ("five", "eight", "four"):
-                d, t = ours(args.binary, lp, rp, lo, hi, paths, args.runs, os.path.join(tmp, "d.pfm"))
-                rows.append((f"stitch sgm, {paths} paths", d, t))
+            for paths, extra, note in (("five", [], ""), ("five", ["--no-median"], ", no median"),
+                                       ("eight", [], ""), ("four", [], "")):
+                d, t = ours(args.binary, lp, rp, lo, hi, paths, extra, args.runs,
+                            os.path.join(tmp, "d.pfm"))
+                rows.append((f"stitch sgm, {paths} paths{note}", d, t))
             for label, mode in (("OpenCV StereoSGBM (MODE_SGBM)", cv2.STEREO_SGBM_MODE_SGBM),
                                 ("OpenCV StereoSGBM (MODE_HH)", cv2.STEREO_SGBM_MODE_HH)):
                 d, t = opencv(mode, left, right, lo, count, args.runs)
