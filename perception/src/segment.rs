@@ -125,6 +125,15 @@ pub trait Segmenter: Send + Sync + std::fmt::Debug {
     fn thread_mask(&self, image: &RgbImage, roi: Rect) -> Result<Vec<u8>, PerceptionError> {
         self.segment(image, roi).map(|m| m.thread)
     }
+    /// `Some(b)` if `thread_mask` is local on a grid of `b`-pixel blocks laid from the
+    /// region's corner: a pixel's value depends only on its own block and the eight round
+    /// it, so a region cut on that grid, with a block to spare round the pixels asked
+    /// about, gives them the values the larger region gives. The tracer then computes the
+    /// right view's mask only where it reads it. `None` (the default: a learned model sees
+    /// the whole region): the mask over the whole band.
+    fn thread_mask_block_px(&self) -> Option<u32> {
+        None
+    }
 }
 
 /// A segmenter several pipelines share (a model loaded once), equal only to itself.
@@ -153,11 +162,18 @@ impl Segmenter for SharedSegmenter {
     fn thread_mask(&self, image: &RgbImage, roi: Rect) -> Result<Vec<u8>, PerceptionError> {
         self.0.thread_mask(image, roi)
     }
+    fn thread_mask_block_px(&self) -> Option<u32> {
+        self.0.thread_mask_block_px()
+    }
 }
 
 /// How much more violet than its surroundings a pixel must be for the tracer's mask, levels
 /// (see [`ColorSegmenter`]'s `thread_mask`).
 const THREAD_CONTRAST: i32 = 30;
+
+/// The side of the blocks whose sums give [`ColorSegmenter`]'s `thread_mask` a pixel's
+/// surroundings, pixels.
+const THREAD_BLOCK_PX: u32 = 4;
 
 /// The classical colour segmenter's thresholds.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -401,7 +417,7 @@ impl Segmenter for ColorSegmenter {
     /// wide against a backdrop other than tissue blends into it, and the fixed rule misses it.
     /// The surroundings are 4 × 4 blocks' sums, three blocks by three round the pixel's.
     fn thread_mask(&self, image: &RgbImage, roi: Rect) -> Result<Vec<u8>, PerceptionError> {
-        const B: usize = 4;
+        const B: usize = THREAD_BLOCK_PX as usize;
         let roi = roi.clipped(image.width, image.height);
         let w = image.width as usize;
         let (rw, rh) = (roi.width() as usize, roi.height() as usize);
@@ -490,6 +506,10 @@ impl Segmenter for ColorSegmenter {
             }
         }
         Ok(thread)
+    }
+
+    fn thread_mask_block_px(&self) -> Option<u32> {
+        Some(THREAD_BLOCK_PX)
     }
 
     fn needleness(&self, p: [u8; 3]) -> f32 {

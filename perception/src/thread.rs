@@ -257,18 +257,19 @@ fn trace_in(
             view: "left".into(),
         });
     }
-    let right_roi = Rect {
+    // The right view's band: every pixel the left region's may match.
+    let band = Rect {
         x0: roi.x0.saturating_sub(disparity[1].ceil() as u32 + 2),
         y0: roi.y0,
         x1: (roi.x1 as f64 - disparity[0].floor() + 2.0).clamp(0.0, f64::from(calib.width)) as u32,
         y1: roi.y1,
     };
-    let rmask = segmenter.thread_mask(right, right_roi)?;
-    if rmask.iter().filter(|&&v| v != 0).count() < 20 {
-        return Err(PerceptionError::NoThread {
-            view: "right".into(),
-        });
-    }
+    // Its mask over the whole band unless the segmenter's is local; then only where the
+    // rows of the left trace read it, once they are known (below).
+    let band_mask = match segmenter.thread_mask_block_px() {
+        Some(_) => None,
+        None => Some(right_mask(segmenter, right, band)?),
+    };
     // The path is searched on 2×2 blocks (a block is thread if any of its pixels is): a
     // thread two or three pixels wide stays connected, and the search is four times smaller.
     let (cw, ch) = (w.div_ceil(2), h.div_ceil(2));
@@ -448,15 +449,10 @@ fn trace_in(
         roi,
         mask: &mask,
     };
-    let rview = View {
-        image: right,
-        roi: right_roi,
-        mask: &rmask,
-    };
     let sin_min = params.min_crossing_rad.sin();
     let mut uv = Vec::new(); // (t, u, v)
-    // Every row crossing, with every disparity the right view's row allows.
-    let mut crossings: Vec<(f64, Vec<f64>)> = Vec::new(); // (t, candidate disparities)
+    // Every row crossing: its arc length, its centre in the left view and its row.
+    let mut rows_crossed: Vec<(f64, f64, u32)> = Vec::new();
     let mut measured_rows = std::collections::HashSet::new();
     for k in 0..path.len() {
         let (x, y, on) = path[k];
@@ -476,21 +472,41 @@ fn trace_in(
             };
             let xl = lview.centre(l0, l1, row);
             uv.push((t[k], xl, y));
-            if !measured_rows.insert((row, l0)) {
-                continue;
-            }
-            let c: Vec<f64> = rview
-                .runs(xl - disparity[1], xl - disparity[0], row)
-                .into_iter()
-                .map(|xr| xl - xr)
-                .collect();
-            if !c.is_empty() {
-                crossings.push((t[k], c));
+            if measured_rows.insert((row, l0)) {
+                rows_crossed.push((t[k], xl, row));
             }
         } else if let Some(yc) = lview.column_centre(x as i64, row) {
             uv.push((t[k], x, yc));
         }
     }
+    let (right_roi, rmask) = match (band_mask, segmenter.thread_mask_block_px()) {
+        (Some(m), _) => (band, m),
+        (None, block) => {
+            let roi = read_region(band, &rows_crossed, disparity, block.unwrap_or(1));
+            if roi.is_empty() {
+                (roi, Vec::new())
+            } else {
+                (roi, right_mask(segmenter, right, roi)?)
+            }
+        }
+    };
+    let rview = View {
+        image: right,
+        roi: right_roi,
+        mask: &rmask,
+    };
+    // Every disparity the right view's row allows, at each crossing.
+    let crossings: Vec<(f64, Vec<f64>)> = rows_crossed // (t, candidate disparities)
+        .iter()
+        .filter_map(|&(t, xl, row)| {
+            let c: Vec<f64> = rview
+                .runs(xl - disparity[1], xl - disparity[0], row)
+                .into_iter()
+                .map(|xr| xl - xr)
+                .collect();
+            (!c.is_empty()).then_some((t, c))
+        })
+        .collect();
     let disp = smoothest(
         &crossings,
         start.map(|s| (0.0, s[2])),
@@ -1158,6 +1174,69 @@ impl Walker<'_> {
     }
 }
 
+/// The right view's thread mask over `roi`, refused when it holds too little thread.
+fn right_mask(
+    segmenter: &dyn Segmenter,
+    right: &RgbImage,
+    roi: Rect,
+) -> Result<Vec<u8>, PerceptionError> {
+    let mask = segmenter.thread_mask(right, roi)?;
+    if mask.iter().filter(|&&v| v != 0).count() < 20 {
+        return Err(PerceptionError::NoThread {
+            view: "right".into(),
+        });
+    }
+    Ok(mask)
+}
+
+/// The part of the right view's `band` that [`View::runs`] reads for the left crossings
+/// `rows_crossed` (`(t, x, row)`), cut on the segmenter's grid of `block`-pixel blocks laid
+/// from the band's corner, with a block to spare all round (see
+/// [`Segmenter::thread_mask_block_px`]), so that the mask there is the band's. A run
+/// reaching past the search's right end is followed until it ends or is too long
+/// (`MAX_RUN_PX`): so many columns more. Empty when nothing was crossed.
+fn read_region(
+    band: Rect,
+    rows_crossed: &[(f64, f64, u32)],
+    disparity: [f64; 2],
+    block: u32,
+) -> Rect {
+    let (mut lo, mut hi) = (i64::MAX, i64::MIN);
+    let (mut top, mut bottom) = (u32::MAX, 0);
+    for &(_, xl, row) in rows_crossed {
+        lo = lo.min((xl - disparity[1]).floor() as i64);
+        hi = hi.max((xl - disparity[0]).ceil() as i64 + MAX_RUN_PX + 1);
+        top = top.min(row);
+        bottom = bottom.max(row + 1);
+    }
+    if rows_crossed.is_empty() {
+        return Rect {
+            x1: band.x0,
+            y1: band.y0,
+            ..band
+        };
+    }
+    let b = i64::from(block.max(1));
+    // Down to the start of the block before the first one read; up to the end of the block
+    // after the last one; within the band.
+    let down = |v: i64, origin: u32| {
+        let o = i64::from(origin);
+        (o + ((v - o).max(0) / b - 1) * b).max(o) as u32
+    };
+    let up = |v: i64, origin: u32, end: u32| {
+        let o = i64::from(origin);
+        (o + ((v - o).max(0) + b - 1) / b * b + b)
+            .min(i64::from(end))
+            .max(o) as u32
+    };
+    Rect {
+        x0: down(lo, band.x0),
+        y0: down(i64::from(top), band.y0),
+        x1: up(hi, band.x0, band.x1),
+        y1: up(i64::from(bottom), band.y0, band.y1),
+    }
+}
+
 /// One view's image and thread mask over a region.
 struct View<'a> {
     image: &'a RgbImage,
@@ -1432,5 +1511,67 @@ mod tests {
             .collect();
         let g = b.fit(&gappy, 10.0).expect("fits");
         assert!(g.variance(&b, 50.0) > 3.0 * g.variance(&b, 10.0));
+    }
+
+    proptest::proptest! {
+        /// The right view's mask cut to where the crossings read it gives every crossing the
+        /// runs the whole band's mask gives: rows of colours in runs of 1 to 30 pixels (thread
+        /// runs longer than `MAX_RUN_PX` included), any band, any crossings.
+        #[test]
+        fn the_read_region_gives_the_bands_runs(
+            seed in 0u64..1_000_000,
+            band in (0u32..60, 0u32..40, 20u32..200, 10u32..80),
+            crossings in proptest::collection::vec((0.0f64..260.0, 0u32..120), 0..12),
+            d in (0.0f64..40.0, 0.0f64..60.0),
+        ) {
+            use rand::Rng;
+            use rand_chacha::rand_core::SeedableRng;
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+            let (w, h) = (260u32, 120u32);
+            let mut image = RgbImage { width: w, height: h, data: Vec::with_capacity((w * h * 3) as usize) };
+            for _ in 0..h {
+                let mut x = 0;
+                while x < w {
+                    let len = rng.random_range(1..=30).min(w - x);
+                    // Any colour: the contrast rule (against the surroundings' mean)
+                    // decides as often as the fixed one.
+                    let base = [rng.random_range(40..200u8), rng.random_range(30..160u8), rng.random_range(40..200u8)];
+                    for _ in 0..len {
+                        let n = rng.random_range(0..30u8);
+                        image.data.extend_from_slice(&[base[0] + n, base[1] + n, base[2] + n]);
+                    }
+                    x += len;
+                }
+            }
+            let band = Rect {
+                x0: band.0,
+                y0: band.1,
+                x1: (band.0 + band.2).min(w),
+                y1: (band.1 + band.3).min(h),
+            };
+            let disparity = [d.0, d.0 + d.1];
+            let rows: Vec<(f64, f64, u32)> = crossings
+                .iter()
+                .filter(|c| c.1 >= band.y0 && c.1 < band.y1)
+                .map(|&(x, row)| (0.0, x, row))
+                .collect();
+            let seg = crate::ColorSegmenter::default();
+            let block = seg.thread_mask_block_px().expect("the colour segmenter's mask is local");
+            let part = read_region(band, &rows, disparity, block);
+            proptest::prop_assert!(
+                part.x0 >= band.x0 && part.y0 >= band.y0 && part.x1 <= band.x1 && part.y1 <= band.y1
+            );
+            let whole = seg.thread_mask(&image, band).expect("mask");
+            let cut = if part.is_empty() { Vec::new() } else { seg.thread_mask(&image, part).expect("mask") };
+            let (a, b) = (
+                View { image: &image, roi: band, mask: &whole },
+                View { image: &image, roi: part, mask: &cut },
+            );
+            for &(_, xl, row) in &rows {
+                let lo = xl - disparity[1];
+                let hi = xl - disparity[0];
+                proptest::prop_assert_eq!(a.runs(lo, hi, row), b.runs(lo, hi, row), "row {}", row);
+            }
+        }
     }
 }
