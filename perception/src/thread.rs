@@ -4,7 +4,10 @@
 //! The stages:
 //! 1. **Masks**: the segmenter's thread mask in both views, over a region around the two ends
 //!    (the last exit point, known to the plan, and the swage, pinned by the needle estimate)
-//!    grown by `margin_m`; grown again while the thread runs off its edge.
+//!    grown by `margin_m`; grown again while the thread runs off its edge. The right view's
+//!    covers the band the left region may match in, or, when the segmenter's mask is local
+//!    (`Segmenter::thread_mask_block_px`), only the part of it that stage 3 reads, computed
+//!    once the centreline is known.
 //! 2. **Centreline** in the left view, from the exit point's pixel to the swage's. Four
 //!    candidates: the cheapest path through the mask, where a step on thread costs 1 and a
 //!    step off it `gap_cost` (A* over 2 × 2 blocks), which bridges what a jaw or the needle
