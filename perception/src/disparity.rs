@@ -322,11 +322,12 @@ impl Default for SemiGlobalMatcher {
     }
 }
 
-/// The 3×3 median of a `w × h` disparity map, a pixel with no answer (+inf) counting as
-/// larger than any answer, the map's edge repeated past it: Hirschmüller's refinement (2008,
-/// §3.4), which removes isolated wrong answers and fills an isolated refusal from the answers
-/// around it (a pixel with five or more of its nine refused stays refused). On four
-/// photographed pairs it cut bad-2.0 on every one (docs/perception.md).
+/// The 3×3 median of a `w × h` disparity map (`data`, row by row: `w · h` values), a pixel
+/// with no answer (+inf) counting as larger than any answer, the map's edge repeated past
+/// it: Hirschmüller's refinement (2008, §3.4), which removes isolated wrong answers and fills
+/// an isolated refusal from the answers around it (a pixel with five or more of its nine
+/// refused stays refused). On four photographed pairs it cut bad-2.0 on every one
+/// (docs/perception.md).
 ///
 /// Written here because no image crate filters `f32` maps with that rule (imageproc's median
 /// takes 8-bit images): Paeth's 19-exchange network for the fifth of nine, over whole rows of

@@ -482,10 +482,11 @@ fn trace_in(
             uv.push((t[k], x, yc));
         }
     }
-    let (right_roi, rmask) = match (band_mask, segmenter.thread_mask_block_px()) {
-        (Some(m), _) => (band, m),
-        (None, block) => {
-            let roi = read_region(band, &rows_crossed, disparity, block.unwrap_or(1));
+    let (right_roi, rmask) = match band_mask {
+        Some(m) => (band, m),
+        None => {
+            let block = segmenter.thread_mask_block_px().unwrap_or(1);
+            let roi = read_region(band, &rows_crossed, disparity, block);
             if roi.is_empty() {
                 (roi, Vec::new())
             } else {
