@@ -436,3 +436,77 @@ fn a_cinch_that_pushes_the_hanging_thread_clear_saves_a_trial_the_thread_tangled
         thread.total_m()
     );
 }
+
+/// The handovers' step ends of a run: (attempt, measurements).
+fn handovers(report: &Report) -> Vec<(u32, stitch_primitives::Measurements)> {
+    report
+        .journal
+        .records()
+        .iter()
+        .filter_map(|r| match &r.entry {
+            stitch_engine::Entry::StepEnd {
+                primitive,
+                attempt,
+                outcome,
+                ..
+            } if primitive == "handover" => {
+                let measured = match outcome {
+                    stitch_primitives::StepOutcome::Succeeded { measured } => measured.clone(),
+                    stitch_primitives::StepOutcome::Failed(f) => f.measured.clone(),
+                    other => panic!("{other:?}"),
+                };
+                Some((*attempt, measured))
+            }
+            _ => None,
+        })
+        .collect()
+}
+
+#[test]
+fn a_handover_with_a_thread_margin_traces_the_thread_before_each_grasp_and_journals_it() {
+    // The thread-aware policy with the noise model, seed 14: its second throw's handover
+    // is attempted twice. Every attempt journals the thread's clearance from the blades
+    // where it closed them (or why the thread could not be traced); with no margin, none.
+    let sensing = SensingConfig::default();
+    let (with, _) = run_edited(
+        "stitch_thread.rhai",
+        |s| s,
+        &SceneConfig::default(),
+        sensing,
+        14,
+    );
+    let seen = handovers(&with);
+    assert!(seen.iter().any(|(a, _)| *a > 0), "{seen:?}");
+    for (attempt, m) in &seen {
+        let looked = m.thread_clearance_m.is_some()
+            || m.perception_failures
+                .iter()
+                .any(|f| f.starts_with("thread before the grasp"));
+        // An attempt that found no needle to grasp did not get as far as the look.
+        let no_needle = m.normal_change_rad.is_none() && m.thread_clearance_m.is_none();
+        assert!(looked || no_needle, "attempt {attempt}: {m:?}");
+    }
+    assert!(
+        seen.iter()
+            .filter(|(_, m)| m.thread_clearance_m.is_some())
+            .count()
+            >= 2
+    );
+    let margin = "thread_margin: mm(3)";
+    let (without, _) = run_edited(
+        "stitch_thread.rhai",
+        |s| {
+            assert!(s.contains(margin));
+            s.replace(margin, "thread_margin: mm(0)")
+        },
+        &SceneConfig::default(),
+        sensing,
+        14,
+    );
+    let seen = handovers(&without);
+    assert!(!seen.is_empty());
+    assert!(
+        seen.iter().all(|(_, m)| m.thread_clearance_m.is_none()),
+        "{seen:?}"
+    );
+}

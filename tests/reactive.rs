@@ -138,6 +138,11 @@ fn a_when_on_each_kind_of_condition_takes_both_branches_on_the_mock() {
             "thread_wrap(left_jaw()) < deg(360)",
             "thread_wrap(left_jaw()) >= deg(360)",
         ),
+        // A point on the estimated arc: its swage is on it, its tip 24 mm away.
+        (
+            "needle_swage_distance(needle_point(deg(180))) < mm(1)",
+            "needle_swage_distance(needle_point(deg(0))) < mm(1)",
+        ),
     ];
     // The tip is a half circle (24 mm across for the 12 mm needle) from the swage the jaw
     // holds: more than a centimetre from the jaw.

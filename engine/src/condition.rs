@@ -95,6 +95,10 @@ pub enum Target {
     RightJaw,
     /// The left (PSM2) jaw's tip.
     LeftJaw,
+    /// A point on the latest needle estimate's arc, this far along it from the tip towards
+    /// the swage, rad: 0 is the tip, π the swage; π − 20° is where the handover's right jaw
+    /// closes on a needle the left jaw holds by its tip (`docs/primitives.md`).
+    NeedlePoint(f64),
 }
 
 impl fmt::Display for Target {
@@ -109,6 +113,7 @@ impl fmt::Display for Target {
             ),
             Target::RightJaw => f.write_str("right_jaw()"),
             Target::LeftJaw => f.write_str("left_jaw()"),
+            Target::NeedlePoint(a) => write!(f, "needle_point(deg({}))", round(a.to_degrees())),
         }
     }
 }
@@ -411,6 +416,13 @@ fn target(to: &Target, f: &Facts<'_>) -> Option<stitch_robot::Point> {
         Target::Point(p) => Some(stitch_robot::Point::new(p[0], p[1], p[2])),
         Target::RightJaw => f.observation.right_jaw,
         Target::LeftJaw => f.observation.left_jaw,
+        Target::NeedlePoint(a) => {
+            // The needle's frame has the tip at angle 0 and the arc turning about its normal
+            // (robot::Needle::point_at): rotate the centre-to-tip radius by `a`.
+            let n = f.observation.needle.as_ref()?;
+            let r = n.tip - n.center;
+            Some(n.center + r * a.cos() + n.normal.normalize().cross(&r) * a.sin())
+        }
     }
 }
 
@@ -601,6 +613,41 @@ mod tests {
             "never seen: infinitely old"
         );
         assert!(!Condition::NeedleSeen.eval(&f));
+    }
+
+    #[test]
+    fn a_needle_point_lies_on_the_estimates_arc_from_tip_to_swage() {
+        // The estimate of `seen()`: centre at the origin, normal +y, tip at +x·12 mm; the arc
+        // turns about the normal from the tip (+y × +x = −z): through −z·12 mm to the swage.
+        let obs = seen();
+        let f = facts(&obs);
+        let at = |deg: f64| target(&Target::NeedlePoint(deg.to_radians()), &f).expect("seen");
+        let near = |a: Point, b: Point| (a - b).norm() < 1e-12;
+        assert!(near(at(0.0), Point::new(0.012, 0.0, 0.0)));
+        assert!(near(at(90.0), Point::new(0.0, 0.0, -0.012)));
+        assert!(near(at(180.0), Point::new(-0.012, 0.0, 0.0)));
+        // The handover's grasp site, 20° in from the swage: 4.2 mm of chord from it.
+        let site = at(160.0);
+        assert!((site.coords.norm() - 0.012).abs() < 1e-12);
+        let chord = 2.0 * 0.012 * 10f64.to_radians().sin();
+        assert!(((site - Point::new(-0.012, 0.0, 0.0)).norm() - chord).abs() < 1e-12);
+        assert!(site.z < 0.0, "on the arc's side, not the other half circle");
+        // No estimate, no point: a comparison with it is false.
+        let none = Observation::default();
+        assert_eq!(target(&Target::NeedlePoint(1.0), &facts(&none)), None);
+        let c = cmp(
+            Quantity::NeedleEndDistance {
+                end: End::Swage,
+                to: Target::NeedlePoint(std::f64::consts::PI),
+            },
+            Cmp::Lt,
+            0.001,
+        );
+        assert!(c.eval(&f) && !c.eval(&facts(&none)));
+        assert_eq!(
+            c.to_string(),
+            "needle_swage_distance(needle_point(deg(180))) < mm(1)"
+        );
     }
 
     /// A thread from (0, -4, 0) cm to (0, 4, 0) cm, or a loop of radius 1 cm round the

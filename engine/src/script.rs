@@ -222,6 +222,10 @@ pub const API: &[(&str, &str)] = &[
         "left_jaw",
         "left_jaw() → the left (PSM2) jaw's tip, as a target",
     ),
+    (
+        "needle_point",
+        "needle_point(deg(a)) → the point a along the latest needle estimate's arc from the tip (deg(0)) to the swage (deg(180)), as a target: deg(160) is the handover's grasp site",
+    ),
 ];
 
 /// Evaluates plan scripts in the sandbox.
@@ -1015,6 +1019,27 @@ fn register_conditions(engine: &mut rhai::Engine) {
     });
     engine.register_fn("right_jaw", || Target::RightJaw);
     engine.register_fn("left_jaw", || Target::LeftJaw);
+    engine.register_fn(
+        "needle_point",
+        |ctx: NativeCallContext, a: Dynamic| -> RhaiResult<Target> {
+            let found = describe_value(&a);
+            match a.try_cast::<Angle>() {
+                Some(Angle(v)) if (0.0..=std::f64::consts::PI).contains(&v) => {
+                    Ok(Target::NeedlePoint(v))
+                }
+                Some(_) => Err(runtime(
+                    &ctx,
+                    format!(
+                        "needle_point: the angle must lie from deg(0) (the tip) to deg(180) (the swage), found {found}"
+                    ),
+                )),
+                None => Err(runtime(
+                    &ctx,
+                    format!("needle_point: the argument must be an angle, written deg(..), found {found}"),
+                )),
+            }
+        },
+    );
     engine.register_fn(
         "point",
         |ctx: NativeCallContext, x: Dynamic, y: Dynamic, z: Dynamic| -> RhaiResult<Target> {

@@ -119,6 +119,35 @@ fn a_wrong_unit_names_the_parameter_and_the_expected_unit() {
 }
 
 #[test]
+fn a_needle_point_takes_an_angle_from_tip_to_swage() {
+    let e = error_of("let c = needle_tip_distance(needle_point(mm(3))) < mm(2);");
+    assert!(
+        e.starts_with("plan.rhai:1:29: needle_point: the argument must be an angle, written deg(..), found a length (3 mm)"),
+        "{e}"
+    );
+    let e = error_of("let c = needle_tip_distance(needle_point(deg(200))) < mm(2);");
+    assert!(
+        e.starts_with("plan.rhai:1:29: needle_point: the angle must lie from deg(0) (the tip) to deg(180) (the swage), found an angle (200°)"),
+        "{e}"
+    );
+    // A handover's thread margin is a length within its range, checked at the call.
+    let e = error_of(&format!(
+        "let t = suture(wound()[0], [{GOOD_THROW}, handover(#{{ thread_margin: deg(3) }})]);"
+    ));
+    assert!(
+        e.contains("handover: `thread_margin` must be a length"),
+        "{e}"
+    );
+    let e = error_of(
+        "let h = handover(#{ thread_margin: cm(2) });\nmission(#{ name: \"x\", throws: [suture(wound()[0], [insert(), extract(), h])] })",
+    );
+    assert!(
+        e.starts_with("plan.rhai:1:9: throw 1: handover: thread_margin = 20.00 mm is out of range; expected 0.0 mm to 10.0 mm"),
+        "{e}"
+    );
+}
+
+#[test]
 fn a_negative_count_is_refused_at_its_call_not_read_as_zero() {
     // `samples: 0` means "insert open loop on the last correction's grasp": a negative
     // count read as zero would pass validation and change what the robot does.

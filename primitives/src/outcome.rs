@@ -25,8 +25,14 @@ pub struct Measurements {
     /// Thread left on the needle's side after this step, where something can tell, m.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub thread_left_m: Option<f64>,
+    /// A handover's look at the thread before it grasped (its `thread_margin`): how near the
+    /// traced thread came to the closing blades, less twice its uncertainty, m; below the
+    /// margin it pushed the thread away first.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub thread_clearance_m: Option<f64>,
     /// Why the needle estimator gave no estimate, each cycle of this step it gave none (a
-    /// typed perception failure): a step that waited on the needle says what it saw instead.
+    /// typed perception failure): a step that waited on the needle says what it saw instead;
+    /// a thread that could not be traced, where a step looked at it, is said here too.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub perception_failures: Vec<String>,
 }

@@ -71,6 +71,12 @@ pub const HANDOVER_TUG_RAD: f64 = deg(20.0);
 pub const HANDOVER_INSET_RAD: f64 = deg(20.0);
 /// Re-attempts after a failed grasp ("up to 5 additional times").
 pub const HANDOVER_RETRIES: u8 = 5;
+/// Before each grasp, the closing blades should stay this clear of the traced thread (less
+/// twice its uncertainty); a re-attempt's random offset that does not goes to the other side
+/// of the grasp point. Not in the paper (its handover looks at no thread); 0 leaves the look
+/// out, as STITCH does. A plan turns it on (`scripts/stitch_thread.rhai`: 3 mm,
+/// docs/experiments.md).
+pub const HANDOVER_THREAD_MARGIN_M: f64 = 0.0;
 /// Below this change the needle normal counts as "unchanged" (the grasp did not take). The
 /// paper says "unchanged"; a measured normal is never exactly equal, and the difference of
 /// two estimates carries both their noise, so modelling choice 8° (against the primitive's
@@ -271,6 +277,11 @@ pub struct HandoverParams {
     pub tug_rad: f64,
     /// How far in from the end the grasp is, along the arc, rad.
     pub inset_rad: f64,
+    /// Before each grasp, the thread is traced and a re-attempt's random offset goes to the
+    /// side of the grasp point where the closing blades stay clear of it by this much if the
+    /// drawn side does not, m (0: no look, the paper's handover).
+    #[serde(default)]
+    pub thread_margin_m: f64,
 }
 impl Default for HandoverParams {
     fn default() -> Self {
@@ -281,6 +292,7 @@ impl Default for HandoverParams {
             normal_tolerance_rad: HANDOVER_NORMAL_TOLERANCE_RAD,
             tug_rad: HANDOVER_TUG_RAD,
             inset_rad: HANDOVER_INSET_RAD,
+            thread_margin_m: HANDOVER_THREAD_MARGIN_M,
         }
     }
 }
@@ -444,6 +456,7 @@ impl StepKind {
             (StepKind::Handover(p), "normal_tolerance") => A(p.normal_tolerance_rad),
             (StepKind::Handover(p), "tug") => A(p.tug_rad),
             (StepKind::Handover(p), "inset") => A(p.inset_rad),
+            (StepKind::Handover(p), "thread_margin") => L(p.thread_margin_m),
             (StepKind::Correct(p), "samples") => C(i64::from(p.samples)),
             (StepKind::Correct(p), "final_rotation") => A(p.final_rotation_rad),
             (StepKind::EstimateNeedle(p), "samples") => C(i64::from(p.samples)),
@@ -493,6 +506,7 @@ impl StepKind {
             (StepKind::Handover(p), "normal_tolerance", A(v)) => p.normal_tolerance_rad = v,
             (StepKind::Handover(p), "tug", A(v)) => p.tug_rad = v,
             (StepKind::Handover(p), "inset", A(v)) => p.inset_rad = v,
+            (StepKind::Handover(p), "thread_margin", L(v)) => p.thread_margin_m = v,
             (StepKind::Correct(p), "samples", C(v)) => p.samples = sat32(v),
             (StepKind::Correct(p), "final_rotation", A(v)) => p.final_rotation_rad = v,
             (StepKind::EstimateNeedle(p), "samples", C(v)) => p.samples = sat32(v),
@@ -679,6 +693,13 @@ pub fn param_specs(name: &str) -> &'static [ParamSpec] {
             deg(0.0),
             deg(60.0),
             "grasp this far in from the end, along the arc"
+        ),
+        spec!(
+            "thread_margin",
+            Length,
+            0.0,
+            0.01,
+            "before each grasp, keep the blades this clear of the traced thread (0: no look)"
         ),
     ];
     const CORRECT: &[ParamSpec] = &[

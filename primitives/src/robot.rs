@@ -826,6 +826,38 @@ impl RobotPrimitives {
         Ok(())
     }
 
+    /// The handover's look before it grasps (its `thread_margin`): the thread traced from
+    /// the last stitch's exit to `swage`. `None` when it cannot be traced, the reason kept for
+    /// the step's perception failures.
+    fn trace_before_grasp(
+        &mut self,
+        c: &mut dyn StepControl,
+        swage: Point,
+    ) -> Step<Option<stitch_perception::ThreadTrace>> {
+        let hint = stitch_perception::ThreadHint {
+            start: self.thread_from,
+            swage,
+            length_m: None,
+        };
+        self.go_on(c)?;
+        match self.rig.estimator.trace_thread(&hint) {
+            Ok(t) => Ok(Some(t)),
+            // As in `track_thread`: a failing camera or model, or a perception with no
+            // tracer while the plan asks for the check, is a fault of the robot.
+            Err(
+                e @ (PerceptionError::Camera { .. }
+                | PerceptionError::Model { .. }
+                | PerceptionError::Config { .. }),
+            ) => Err(failed(FailureKind::ArmFault {
+                message: format!("perception: {e}"),
+            })),
+            Err(e) => {
+                self.unseen.push(format!("thread before the grasp: {e}"));
+                Ok(None)
+            }
+        }
+    }
+
     /// Handover. Commit point: the left jaw opening to let go of the needle the right jaw
     /// now holds.
     fn handover(
@@ -877,7 +909,16 @@ impl RobotPrimitives {
         } else {
             Vector::zeros()
         };
-        let target = regrasp + jitter;
+        let mut target = regrasp + jitter;
+        let mut measured = Measurements::default();
+        if p.thread_margin_m > 0.0
+            && let Some(trace) = self.trace_before_grasp(c, swage)?
+        {
+            let (chosen, clearance) =
+                grasp_clear_of_thread(&trace, regrasp, jitter, h, p.thread_margin_m);
+            target = chosen;
+            measured.thread_clearance_m = clearance;
+        }
         let [off, at] = regrasp_waypoints(&target, &(target + h), p.offset_m, p.offset_m);
         self.jaw(c, Hand::Right, JAW_OPEN_RAD)?;
         self.go(c, Hand::Right, &[off, at])?;
@@ -888,10 +929,7 @@ impl RobotPrimitives {
         let after = self.estimate(c, RIGHT_AT_SWAGE)?;
         let n1 = after.features(&self.rig.needle).1;
         let change = n0.angle(&n1);
-        let measured = Measurements {
-            normal_change_rad: Some(change),
-            ..Measurements::default()
-        };
+        measured.normal_change_rad = Some(change);
         if change <= p.normal_tolerance_rad {
             // The grasp did not take: let go, pull back.
             self.jaw(c, Hand::Right, JAW_OPEN_RAD)?;
@@ -993,6 +1031,55 @@ impl RobotPrimitives {
             }
         }
     }
+}
+
+/// A handover attempt's grasp point, `regrasp` moved by the re-attempt's random `jitter`,
+/// kept clear of the traced thread: when the blades closing there (along `h`, from the grasp
+/// point back towards the right arm) would come nearer the thread than `margin_m` — where the
+/// jaw, missing the wire near the swage, would close on the thread that leaves it — the same
+/// offset to the other side of `regrasp` instead, if the thread is farther from the blades
+/// there. Returns the grasp point and the thread's clearance from its blades, m.
+fn grasp_clear_of_thread(
+    trace: &stitch_perception::ThreadTrace,
+    regrasp: Point,
+    jitter: Vector,
+    h: Vector,
+    margin_m: f64,
+) -> (Point, Option<f64>) {
+    let clear =
+        |t: Point| nearest_to_blades(&trace.points, &trace.sigma_m, &[t, t + h * BLADE_LENGTH_M]);
+    let (drawn, other) = (regrasp + jitter, regrasp - jitter);
+    let here = clear(drawn);
+    match (here, clear(other)) {
+        (Some(d), Some(e)) if d < margin_m && jitter.norm() > 0.0 && e > d => (other, Some(e)),
+        _ => (drawn, here),
+    }
+}
+
+/// How far the traced thread stays from the `blades` segment, less twice the trace's
+/// uncertainty where it comes nearest, m (negative: it may touch); `None` for an empty trace.
+/// The trace is walked in steps of at most 0.5 mm, well under the 1.2 mm at which the mock's
+/// closing jaw catches a link, so a segment passing between two of its points is not missed.
+fn nearest_to_blades(points: &[Point], sigma_m: &[f64], blades: &[Point; 2]) -> Option<f64> {
+    const STEP_M: f64 = 0.0005;
+    let sigma = |i: usize| sigma_m.get(i).copied().unwrap_or(0.0);
+    let at = |p: &Point, s: f64| {
+        let (on, _) = stitch_robot::nearest_on_segment(p, &blades[0], &blades[1]);
+        (p - on).norm() - 2.0 * s
+    };
+    let mut best = points.first().map(|p| at(p, sigma(0)));
+    for (i, w) in points.windows(2).enumerate() {
+        let steps = ((w[1] - w[0]).norm() / STEP_M).ceil().max(1.0) as usize;
+        for k in 1..=steps {
+            let t = k as f64 / steps as f64;
+            let d = at(
+                &(w[0] + (w[1] - w[0]) * t),
+                sigma(i) + (sigma(i + 1) - sigma(i)) * t,
+            );
+            best = best.map(|b| b.min(d));
+        }
+    }
+    best
 }
 
 /// The mean of nearby poses: mean translation, normalised sum of sign-aligned quaternions.
@@ -1210,6 +1297,86 @@ mod tests {
 
     fn close(a: &Point, b: &Point) -> bool {
         (a - b).norm() < 1e-9
+    }
+
+    fn trace(points: Vec<Point>, sigma_m: f64) -> stitch_perception::ThreadTrace {
+        stitch_perception::ThreadTrace {
+            sigma_m: vec![sigma_m; points.len()],
+            points,
+            length_m: 0.0,
+            hidden: Vec::new(),
+            seen_share: 1.0,
+            matched: 0,
+            left_path_px: Vec::new(),
+        }
+    }
+
+    #[test]
+    fn the_threads_clearance_from_the_blades_is_its_least_distance_less_two_sigma() {
+        let blades = [Point::origin(), Point::new(9.0 * MM, 0.0, 0.0)];
+        // A vertical strand 3 mm beside the blades' middle, given by two points 4 cm apart:
+        // the walk between them finds where it passes.
+        let strand = [
+            Point::new(4.0 * MM, 3.0 * MM, -20.0 * MM),
+            Point::new(4.0 * MM, 3.0 * MM, 20.0 * MM),
+        ];
+        let d = nearest_to_blades(&strand, &[0.5 * MM; 2], &blades).expect("a trace");
+        assert!((d - 2.0 * MM).abs() < 1e-6, "{d}");
+        let d = nearest_to_blades(&strand, &[0.0; 2], &blades).expect("a trace");
+        assert!((d - 3.0 * MM).abs() < 1e-6, "{d}");
+        // Past the blades' back end: measured from that end.
+        let beyond = [
+            Point::new(14.0 * MM, 0.0, 0.0),
+            Point::new(20.0 * MM, 0.0, 0.0),
+        ];
+        let d = nearest_to_blades(&beyond, &[0.0; 2], &blades).expect("a trace");
+        assert!((d - 5.0 * MM).abs() < 1e-9, "{d}");
+        // A single point, and nothing.
+        let d = nearest_to_blades(&[Point::new(0.0, 0.0, 2.0 * MM)], &[0.0], &blades);
+        assert!((d.expect("a point") - 2.0 * MM).abs() < 1e-9);
+        assert_eq!(nearest_to_blades(&[], &[], &blades), None);
+    }
+
+    #[test]
+    fn a_re_attempts_grasp_goes_to_the_side_away_from_the_thread() {
+        // The grasp point at the origin, the blades closing along +x back to the right arm,
+        // a re-attempt's offset of 4 mm along +y.
+        let (regrasp, h, jitter) = (Point::origin(), Vector::x(), Vector::y() * 4.0 * MM);
+        let strand_at = |y: f64| {
+            trace(
+                vec![
+                    Point::new(4.0 * MM, y, -20.0 * MM),
+                    Point::new(4.0 * MM, y, 20.0 * MM),
+                ],
+                0.5 * MM,
+            )
+        };
+        // The thread 1 mm beyond the drawn offset's blades: mirrored, 9 mm − 1 mm from it.
+        let (at, d) = grasp_clear_of_thread(&strand_at(5.0 * MM), regrasp, jitter, h, 3.0 * MM);
+        assert!(close(&at, &(regrasp - jitter)), "{at}");
+        assert!((d.expect("traced") - 8.0 * MM).abs() < 1e-6, "{d:?}");
+        // Clear of the drawn offset by the margin: kept.
+        let (at, d) = grasp_clear_of_thread(&strand_at(9.0 * MM), regrasp, jitter, h, 3.0 * MM);
+        assert!(close(&at, &(regrasp + jitter)), "{at}");
+        assert!((d.expect("traced") - 4.0 * MM).abs() < 1e-6, "{d:?}");
+        // Nearer the drawn offset's blades than the margin, but nearer still to the other
+        // side's (a loop down past both): kept.
+        let looped = trace(
+            vec![
+                Point::new(4.0 * MM, 5.5 * MM, -20.0 * MM),
+                Point::new(4.0 * MM, 5.5 * MM, 20.0 * MM),
+                Point::new(4.0 * MM, -4.5 * MM, 20.0 * MM),
+                Point::new(4.0 * MM, -4.5 * MM, -20.0 * MM),
+            ],
+            0.5 * MM,
+        );
+        let (at, d) = grasp_clear_of_thread(&looped, regrasp, jitter, h, 3.0 * MM);
+        assert!(close(&at, &(regrasp + jitter)), "{at}");
+        assert!((d.expect("traced") - 0.5 * MM).abs() < 1e-6, "{d:?}");
+        // The first attempt has no offset to turn round.
+        let (at, _) =
+            grasp_clear_of_thread(&strand_at(1.0 * MM), regrasp, Vector::zeros(), h, 3.0 * MM);
+        assert!(close(&at, &regrasp), "{at}");
     }
 
     #[test]
