@@ -55,7 +55,7 @@ enum Call {
         primitive: &'static str,
         before: [u32; 5],
         after: [u32; 5],
-        outcome: StepOutcome,
+        outcome: Box<StepOutcome>,
     },
     Hold,
     Observe,
@@ -82,7 +82,7 @@ impl Primitives for Probe {
             primitive: req.kind.name(),
             before,
             after: counters(&self.world),
-            outcome: outcome.clone(),
+            outcome: Box::new(outcome.clone()),
         });
         match outcome {
             StepOutcome::Failed(f)
@@ -219,7 +219,7 @@ fn check(plan: &Plan, report: &Report, calls: &[Call]) -> Result<String, String>
         .filter_map(|c| match c {
             Call::Run {
                 primitive, outcome, ..
-            } => Some((*primitive, outcome)),
+            } => Some((*primitive, outcome.as_ref())),
             _ => None,
         })
         .collect();
@@ -283,7 +283,7 @@ fn held_at_the_end(calls: &[Call], last_run: Option<usize>) -> Result<(), String
 fn held_after_the_end(calls: &[Call], last_run: Option<usize>) -> Result<String, String> {
     held_at_the_end(calls, last_run)?;
     if let Some(Call::Run { outcome, .. }) = last_run.map(|i| &calls[i])
-        && matches!(outcome, StepOutcome::Succeeded { .. })
+        && matches!(**outcome, StepOutcome::Succeeded { .. })
     {
         return Err("the last step run succeeded, yet the run did not complete".into());
     }
