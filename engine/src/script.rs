@@ -165,7 +165,7 @@ pub const API: &[(&str, &str)] = &[
     ),
     (
         "needle_tip_distance",
-        "needle_tip_distance(target) → the latest estimate's tip to a target (point(..), wound_point.entry/.exit, right_jaw(), left_jaw()), compare with mm(..)",
+        "needle_tip_distance(target) → the latest estimate's tip to a target (point(..), wound_point.entry/.exit, right_jaw(), left_jaw(), needle_point(..)), compare with mm(..)",
     ),
     (
         "needle_swage_distance",
@@ -181,7 +181,7 @@ pub const API: &[(&str, &str)] = &[
     ),
     (
         "thread_clearance",
-        "thread_clearance(target) → a thread trace made now (from the last exit to the needle's swage): how far it stays from a target (right_jaw(), left_jaw(), a point) less twice its uncertainty, compare with mm(..)",
+        "thread_clearance(target) → a thread trace made now (from the last exit to the needle's swage): how far it stays from a target (right_jaw(), left_jaw(), a point, needle_point(..)) less twice its uncertainty, compare with mm(..)",
     ),
     (
         "thread_free",
