@@ -171,6 +171,9 @@ fn outcome_text(o: &StepOutcome) -> String {
             if let Some(t) = measured.thread_left_m {
                 parts.push(format!("thread left {:.1} cm", t * 100.0));
             }
+            if let Some(c) = measured.thread_clearance_m {
+                parts.push(format!("thread clearance {:.1} mm at the blades", c * 1e3));
+            }
             parts.join(", ")
         }
         StepOutcome::Failed(f) => {
@@ -180,6 +183,9 @@ fn outcome_text(o: &StepOutcome) -> String {
             }
             if let Some(d) = f.measured.normal_change_rad {
                 let _ = write!(s, " (normal changed {:.1}°)", d.to_degrees());
+            }
+            if let Some(c) = f.measured.thread_clearance_m {
+                let _ = write!(s, " (thread clearance {:.1} mm at the blades)", c * 1e3);
             }
             s
         }
