@@ -62,6 +62,8 @@ pub struct StepEnd {
     pub thread_used_m: f64,
     /// Thread left, m.
     pub thread_left_m: f64,
+    /// A handover's thread clearance at the blades, m.
+    pub thread_clearance_m: f64,
 }
 
 /// `stitch_msgs/msg/NeedleEstimate` (`recorder/msg/NeedleEstimate.msg`).

@@ -655,6 +655,7 @@ fn write_loop(
                         normal_change_rad: v(m.normal_change_rad),
                         thread_used_m: v(m.thread_used_m),
                         thread_left_m: v(m.thread_left_m),
+                        thread_clearance_m: v(m.thread_clearance_m),
                     };
                     let bytes = stitch_dvrk::encode(&msg, crate::msgs::STEP_END.name)
                         .map_err(|e| message(e.to_string()))?;
