@@ -826,14 +826,14 @@ impl RobotPrimitives {
         Ok(())
     }
 
-    /// The handover's look before it grasps (its `thread_margin`): the thread traced from
-    /// the last stitch's exit to `swage`. `None` when it cannot be traced, the reason kept for
-    /// the step's perception failures.
-    fn trace_before_grasp(
+    /// The free thread traced from where the last stitch left it to `swage`, or why it
+    /// could not be (the thread hidden, not found); a failing camera or model, or a
+    /// perception with no tracer, is a fault.
+    fn trace_to(
         &mut self,
         c: &mut dyn StepControl,
         swage: Point,
-    ) -> Step<Option<stitch_perception::ThreadTrace>> {
+    ) -> Step<Result<stitch_perception::ThreadTrace, PerceptionError>> {
         let hint = stitch_perception::ThreadHint {
             start: self.thread_from,
             swage,
@@ -841,9 +841,6 @@ impl RobotPrimitives {
         };
         self.go_on(c)?;
         match self.rig.estimator.trace_thread(&hint) {
-            Ok(t) => Ok(Some(t)),
-            // As in `track_thread`: a failing camera or model, or a perception with no
-            // tracer while the plan asks for the check, is a fault of the robot.
             Err(
                 e @ (PerceptionError::Camera { .. }
                 | PerceptionError::Model { .. }
@@ -851,10 +848,7 @@ impl RobotPrimitives {
             ) => Err(failed(FailureKind::ArmFault {
                 message: format!("perception: {e}"),
             })),
-            Err(e) => {
-                self.unseen.push(format!("thread before the grasp: {e}"));
-                Ok(None)
-            }
+            other => Ok(other),
         }
     }
 
@@ -911,9 +905,16 @@ impl RobotPrimitives {
         };
         let mut target = regrasp + jitter;
         let mut measured = Measurements::default();
-        if p.thread_margin_m > 0.0
-            && let Some(trace) = self.trace_before_grasp(c, swage)?
-        {
+        // The look before the grasp (`thread_margin`): a thread that cannot be traced is said
+        // and the offset left as drawn; the trace has nothing else to aim it by.
+        let trace = if p.thread_margin_m > 0.0 {
+            self.trace_to(c, swage)?
+                .map_err(|e| self.unseen.push(format!("thread before the grasp: {e}")))
+                .ok()
+        } else {
+            None
+        };
+        if let Some(trace) = trace {
             let (chosen, clearance) =
                 grasp_clear_of_thread(&trace, regrasp, jitter, h, p.thread_margin_m);
             target = chosen;
@@ -1010,26 +1011,10 @@ impl RobotPrimitives {
     fn track_thread(&mut self, c: &mut dyn StepControl) -> Step<stitch_perception::ThreadTrace> {
         let needle = self.estimate(c, None)?;
         let (_, _, _, swage) = needle.features(&self.rig.needle);
-        let hint = stitch_perception::ThreadHint {
-            start: self.thread_from,
-            swage,
-            length_m: None,
-        };
-        self.go_on(c)?;
-        match self.rig.estimator.trace_thread(&hint) {
-            Ok(t) => Ok(t),
-            Err(
-                e @ (PerceptionError::Camera { .. }
-                | PerceptionError::Model { .. }
-                | PerceptionError::Config { .. }),
-            ) => Err(failed(FailureKind::ArmFault {
-                message: format!("perception: {e}"),
-            })),
-            Err(e) => {
-                self.unseen.push(format!("thread: {e}"));
-                Err(failed(FailureKind::PerceptionDropout))
-            }
-        }
+        self.trace_to(c, swage)?.map_err(|e| {
+            self.unseen.push(format!("thread: {e}"));
+            failed(FailureKind::PerceptionDropout)
+        })
     }
 }
 
