@@ -480,7 +480,7 @@ fn plan_parameters_are_shown_checked_and_refused_with_the_reason() {
                 "max_sweeps=2.5",
             ],
             3,
-            "scripts/stitch_thread.rhai:24:",
+            "scripts/stitch_thread.rhai:26:",
         ),
         (
             vec![
