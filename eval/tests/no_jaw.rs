@@ -53,7 +53,10 @@ fn a_needle_outnumbered_by_glare_is_found_by_the_circle_with_no_plane_first() {
     for i in [69usize, 112, 170] {
         let s = &set[i];
         let (left, right) = independent::render(s);
-        let p = NeedlePipeline::classical(s.calibration.clone(), needle).expect("pipeline");
+        let mut p = NeedlePipeline::classical(s.calibration.clone(), needle).expect("pipeline");
+        // The free circle is what this test is for: the glare's specks stay in the masks
+        // (set aside, the circle through the plane finds two of the three needles).
+        p.params.clutter_components = usize::MAX;
         let out = p
             .estimate(&left, &right, None, 2 ^ i as u64)
             .unwrap_or_else(|e| panic!("pair {i}: {e}"));
@@ -62,6 +65,31 @@ fn a_needle_outnumbered_by_glare_is_found_by_the_circle_with_no_plane_first() {
             "pair {i}: {:?}",
             out.diagnostics
         );
+        let e = stitch_perception::PoseError::between(&needle, &out.pose, &s.truth);
+        assert!(
+            e.endpoints_m() <= 1e-3 && e.normal_rad <= 5f64.to_radians(),
+            "pair {i}: {e:?}"
+        );
+    }
+}
+
+/// Pairs of the independent set (seed 2) that were refused before the masks were
+/// decluttered and the pieces joined: four needles beside a field of wet glare's specks
+/// (hundreds of needle-coloured components round them; `bad_fit`, 11–23 % of the points near
+/// the best circle on it), and one with no jaw whose mask the thread, lying along it, cut in
+/// two places, each with too short an arc (`bad_fit`, 42°). Full frame, no hint: each is
+/// found within a millimetre and 5°.
+#[test]
+fn needles_beside_glare_specks_or_cut_in_two_by_the_thread_are_found() {
+    let set = independent::dataset(184, 2, Needle::default());
+    let needle = Needle::default();
+    for i in [48usize, 68, 123, 140, 183] {
+        let s = &set[i];
+        let (left, right) = independent::render(s);
+        let p = NeedlePipeline::classical(s.calibration.clone(), needle).expect("pipeline");
+        let out = p
+            .estimate(&left, &right, None, 2 ^ i as u64)
+            .unwrap_or_else(|e| panic!("pair {i}: {e}"));
         let e = stitch_perception::PoseError::between(&needle, &out.pose, &s.truth);
         assert!(
             e.endpoints_m() <= 1e-3 && e.normal_rad <= 5f64.to_radians(),

@@ -8,7 +8,7 @@ use crate::disparity::{
 };
 use crate::fit::{self, Circle, RansacParams, arc_extent, plane_basis};
 use crate::refine::{Images, Refined};
-use crate::segment::{ColorSegmenter, Masks, Rect, Segmenter, check_image};
+use crate::segment::{ColorSegmenter, Masks, Rect, Segmenter, check_image, declutter};
 use crate::{NeedleEstimate, NeedleEstimator, PerceptionError};
 use nalgebra::{Matrix3, Rotation3, UnitQuaternion};
 use rand_chacha::ChaCha8Rng;
@@ -24,8 +24,9 @@ type Found = (Masks, Masks, Vec<Point>, Diagnostics);
 /// Mixed into the seed for the free circle's draws (any constant: they are its own).
 const FREE_CIRCLE_SEED: u64 = 0x5EED_F8EE;
 
-/// Places for the needle tried in turn, at most (the segmenter's ranking).
-const MAX_CANDIDATES: usize = 3;
+/// Places for the needle tried in turn, at most (the segmenter's ranking, then the likeliest
+/// joined with its neighbours: [`joined`]).
+const MAX_CANDIDATES: usize = 5;
 
 /// The swage's radius as a multiple of the wire's (a crimped swage is thicker; modelling
 /// choice shared with the renderer's needle).
@@ -107,6 +108,15 @@ pub struct PipelineParams {
     pub image_min_view_rad: f64,
     /// Least arc seen when the images decide the circle (`min_arc_rad` otherwise), rad.
     pub image_min_arc_rad: f64,
+    /// A needle mask of more than this many 8-connected components is cluttered (wet
+    /// glare's specks, hundreds of them): only its components shaped like wire are kept
+    /// (`clutter_min_extent_px` across or more, covering at most `clutter_max_fill` of their
+    /// extent squared).
+    pub clutter_components: usize,
+    /// See `clutter_components`, pixels.
+    pub clutter_min_extent_px: usize,
+    /// See `clutter_components`.
+    pub clutter_max_fill: f32,
 }
 
 impl Default for PipelineParams {
@@ -142,6 +152,9 @@ impl Default for PipelineParams {
             image_max_tilt_rad: 3f64.to_radians(),
             image_min_view_rad: 15f64.to_radians(),
             image_min_arc_rad: 110f64.to_radians(),
+            clutter_components: 30,
+            clutter_min_extent_px: 16,
+            clutter_max_fill: 0.10,
         }
     }
 }
@@ -433,6 +446,22 @@ impl NeedlePipeline {
         ]
     }
 
+    /// A needle mask cluttered with wet glare's specks (`clutter_components`) keeps only
+    /// its components shaped like wire: the specks next to the wire pull the cloud's circle
+    /// and the silhouette's ellipse off it, and their matches outnumber the wire's.
+    fn declutter(&self, m: &mut Masks) {
+        let p = &self.params;
+        let (w, h) = (m.roi.width() as usize, m.roi.height() as usize);
+        declutter(
+            &mut m.needle,
+            w,
+            h,
+            p.clutter_components,
+            p.clutter_min_extent_px,
+            p.clutter_max_fill,
+        );
+    }
+
     fn masks(
         &self,
         left: &stitch_robot::RgbImage,
@@ -457,7 +486,7 @@ impl NeedlePipeline {
             let lm = if region.whole {
                 Some(seg.segment(left, rect)?).filter(|m| m.needle_count() > 0)
             } else {
-                let places = seg.candidates(left, rect);
+                let places = joined(seg.candidates(left, rect));
                 if candidate > 0 && candidate >= places.len() {
                     return Ok(None);
                 }
@@ -471,7 +500,10 @@ impl NeedlePipeline {
             })?;
             let l = lm.roi;
             let rr = right_band(&l, range);
-            let rm = seg.segment(right, rr)?;
+            let mut rm = seg.segment(right, rr)?;
+            let mut lm = lm;
+            self.declutter(&mut lm);
+            self.declutter(&mut rm);
             if rm.needle_count() == 0 {
                 return Err(PerceptionError::NoMask {
                     view: "right".into(),
@@ -484,7 +516,7 @@ impl NeedlePipeline {
         // can appear: the left region's rows (rectified views), shifted by the calibrated
         // disparities — another bright thing elsewhere in the right view is not a candidate.
         let [cmin, cmax] = self.calibrated_range();
-        let places = seg.candidates(left, hl);
+        let places = joined(seg.candidates(left, hl));
         if candidate > 0 && candidate >= places.len() {
             return Ok(None);
         }
@@ -503,7 +535,9 @@ impl NeedlePipeline {
         } else {
             (seg.segment(left, lroi), seg.segment(right, rroi))
         };
-        let (lm, rm) = (lm?, rm?);
+        let (mut lm, mut rm) = (lm?, rm?);
+        self.declutter(&mut lm);
+        self.declutter(&mut rm);
         // The two regions frame the same needle: their left edges' offset and their right
         // edges' offset are disparities of its extreme points; the needle's own depth spread
         // is within the margin of them.
@@ -1661,5 +1695,62 @@ impl PoseError {
     /// The larger endpoint error, m.
     pub fn endpoints_m(&self) -> f64 {
         self.tip_m.max(self.swage_m)
+    }
+}
+
+/// The segmenter's places for the needle, and after them the likeliest joined with each
+/// other place beside it (a gap no more than half the larger's longer side): the thread
+/// lying along the needle can cut its mask in two, each piece ranked a place of its own with
+/// too short an arc to fit. The joined places are tried only after the pieces.
+fn joined(mut places: Vec<Rect>) -> Vec<Rect> {
+    let Some(&a) = places.first() else {
+        return places;
+    };
+    let side = |r: &Rect| r.width().max(r.height());
+    let gap = |lo0: u32, hi0: u32, lo1: u32, hi1: u32| {
+        lo1.saturating_sub(hi0).max(lo0.saturating_sub(hi1))
+    };
+    let extra: Vec<Rect> = places[1..]
+        .iter()
+        .filter(|b| {
+            let g = gap(a.x0, a.x1, b.x0, b.x1).max(gap(a.y0, a.y1, b.y0, b.y1));
+            g > 0 && 2 * g <= side(&a).max(side(b))
+        })
+        .map(|b| Rect {
+            x0: a.x0.min(b.x0),
+            y0: a.y0.min(b.y0),
+            x1: a.x1.max(b.x1),
+            y1: a.y1.max(b.y1),
+        })
+        .collect();
+    places.extend(extra);
+    places
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn rect(x0: u32, y0: u32, x1: u32, y1: u32) -> Rect {
+        Rect { x0, y0, x1, y1 }
+    }
+
+    #[test]
+    fn pieces_beside_the_likeliest_place_are_joined_after_the_places() {
+        // The needle cut in two by the thread (seed 2's independent pair 123): two places
+        // 63 px apart, the first 150 px wide.
+        let a = rect(243, 426, 393, 549);
+        let b = rect(456, 396, 552, 549);
+        let far = rect(900, 100, 1000, 200);
+        assert_eq!(
+            joined(vec![a, b, far]),
+            vec![a, b, far, rect(243, 396, 552, 549)]
+        );
+        // Overlapping places are one place drawn twice, not pieces; nothing is added.
+        let c = rect(300, 500, 420, 600);
+        assert_eq!(joined(vec![a, c]), vec![a, c]);
+        // Nor for a single place, or none.
+        assert_eq!(joined(vec![a]), vec![a]);
+        assert_eq!(joined(Vec::new()), Vec::<Rect>::new());
     }
 }

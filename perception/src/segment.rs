@@ -630,6 +630,37 @@ pub(crate) fn drop_specks(mask: &mut [u8], w: usize, h: usize, min: usize) {
     }
 }
 
+/// In a cluttered needle mask (more than `max_components` 8-connected components: wet
+/// glare's specks), keep only the components shaped like wire: at least `min_extent` pixels
+/// across and covering no more than `max_fill` of their extent squared. A mask of fewer
+/// components is left as it is: a needle cut by a jaw or the thread keeps its short pieces.
+pub(crate) fn declutter(
+    mask: &mut [u8],
+    w: usize,
+    h: usize,
+    max_components: usize,
+    min_extent: usize,
+    max_fill: f32,
+) {
+    let mut grid: Vec<u32> = mask
+        .iter()
+        .map(|&v| if v != 0 { u32::MAX } else { 0 })
+        .collect();
+    let groups = label_groups(&mut grid, w, h, 1);
+    if groups.len() <= max_components {
+        return;
+    }
+    let keep: Vec<bool> = groups
+        .iter()
+        .map(|g| g.extent() >= min_extent && g.fill() <= max_fill)
+        .collect();
+    for (m, &label) in mask.iter_mut().zip(&grid) {
+        if label != 0 && !keep[label as usize - 1] {
+            *m = 0;
+        }
+    }
+}
+
 /// Check an image has the size its calibration says and a whole number of pixels.
 pub fn check_image(
     image: &RgbImage,
@@ -790,5 +821,53 @@ mod tests {
         assert!(check_image(&img, 10, 10, "left").is_ok());
         let e = check_image(&img, 20, 10, "left").expect_err("size");
         assert!(e.to_string().contains("10×10"), "{e}");
+    }
+
+    /// A 120 × 120 mask: a half-ring of wire 3 px wide (radius 50 px about (60, 60)), a short
+    /// straight piece of it past a gap, and `specks` 4 × 4 blobs along the bottom.
+    fn wire_and_specks(specks: usize) -> Vec<u8> {
+        let (w, h) = (120usize, 120usize);
+        let mut m = vec![0u8; w * h];
+        for y in 0..60 {
+            for x in 0..w {
+                let r = ((x as f64 - 60.0).powi(2) + (y as f64 - 60.0).powi(2)).sqrt();
+                if (48.5..51.5).contains(&r) {
+                    m[y * w + x] = 1;
+                }
+            }
+        }
+        for k in 0..specks {
+            let (x0, y0) = (2 + (k % 19) * 6, 80 + (k / 19) * 6);
+            for y in y0..y0 + 4 {
+                for x in x0..x0 + 4 {
+                    m[y * w + x] = 1;
+                }
+            }
+        }
+        m
+    }
+
+    #[test]
+    fn a_cluttered_mask_keeps_only_its_wire_and_a_clean_one_everything() {
+        let (w, h) = (120, 120);
+        let wire = wire_and_specks(0);
+        // 40 specks and the wire: 41 components, cluttered; the specks go, the wire stays.
+        let mut m = wire_and_specks(40);
+        declutter(&mut m, w, h, 30, 16, 0.10);
+        assert_eq!(m, wire);
+        // 20 specks: not cluttered (a needle cut by a jaw keeps its pieces): untouched.
+        let mut m = wire_and_specks(20);
+        let before = m.clone();
+        declutter(&mut m, w, h, 30, 16, 0.10);
+        assert_eq!(m, before);
+        // A thick blob as large as the wire is not wire either.
+        let mut m = wire_and_specks(40);
+        for y in 100..118 {
+            for x in 20..100 {
+                m[y * w + x] = 1;
+            }
+        }
+        declutter(&mut m, w, h, 30, 16, 0.10);
+        assert_eq!(m, wire);
     }
 }
