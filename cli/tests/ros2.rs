@@ -30,6 +30,40 @@ fn untimed(journal: &str) -> Vec<serde_json::Value> {
         .collect()
 }
 
+/// The journal over ROS 2 equals the in-process one but for the times; if not, the failure
+/// names the first event that differs and shows the client's output and the sim-node's log
+/// since the mission's reset (what it did: motions, holds, resent pairs), not two whole
+/// journals.
+fn assert_twins(wire: &str, mock: &str, what: &str, client_out: &str, node_log: &str) {
+    let (w, m) = (untimed(wire), untimed(mock));
+    if w == m {
+        return;
+    }
+    let k = w.iter().zip(&m).take_while(|(a, b)| a == b).count();
+    let show = |v: &[serde_json::Value]| {
+        v.get(k)
+            .map_or("(the journal ends)".into(), |e| e.to_string())
+    };
+    // The sim-node's log since this mission's reset (a soak's node serves many), at most
+    // its last 400 lines.
+    let lines: Vec<&str> = node_log.lines().collect();
+    let from = lines
+        .iter()
+        .rposition(|l| l.contains("sim-node: reset to seed"))
+        .unwrap_or(0)
+        .max(lines.len().saturating_sub(400));
+    let tail = &lines[from..];
+    panic!(
+        "{what}: the journals differ at event {k} of {} / {}\n  over ROS 2: {}\n  in process: {}\nclient:\n{client_out}\nsim-node since the reset ({} lines):\n{}",
+        w.len(),
+        m.len(),
+        show(&w),
+        show(&m),
+        tail.len(),
+        tail.join("\n")
+    );
+}
+
 /// Missions in process and over ROS 2 against one sim-node on domain `k`: seeds 1 to the
 /// runs `runs_var` says (else `default_runs`), STITCH and, every `human_every`-th,
 /// STITCH + Human, `extra` given to both, `node_args` to the sim-node. Each pair must end
@@ -81,9 +115,14 @@ fn twins(
             wire.out,
             node.log()
         );
-        let (m, w) = (untimed(&mock.journal), untimed(&wire.journal));
-        assert!(m.len() > 5, "{}", mock.journal);
-        assert_eq!(w, m, "run {i} ({plan}, seed {seed}): the journals differ");
+        assert!(untimed(&mock.journal).len() > 5, "{}", mock.journal);
+        assert_twins(
+            &wire.journal,
+            &mock.journal,
+            &format!("run {i} ({plan}, seed {seed})"),
+            &wire.out,
+            &node.log(),
+        );
     }
     node
 }
@@ -146,10 +185,12 @@ fn soak_missions_back_to_back_stay_twins_and_leave_nothing_behind() {
             wire.out,
             node.log()
         );
-        assert_eq!(
-            untimed(&wire.journal),
-            untimed(&mock.journal),
-            "mission {i} ({plan}, seed {seed}): the journals differ"
+        assert_twins(
+            &wire.journal,
+            &mock.journal,
+            &format!("mission {i} ({plan}, seed {seed})"),
+            &wire.out,
+            &node.log(),
         );
         rss.push(proc_status(pid, "VmRSS").expect("the sim-node's memory"));
         threads.push(proc_status(pid, "Threads").expect("the sim-node's threads"));
