@@ -393,7 +393,21 @@ pub fn run_ros2(
     let mut supervisor = supervision.supervise(supervisor);
     let runner = Runner::new(plan, &mut primitives, &mut supervisor, clock, Some(seed))
         .streaming(supervision.sink(recorder));
-    Ok(supervision.show(runner).run())
+    let outcome = supervision.show(runner).run();
+    say_resends(&dvrk);
+    Ok(outcome)
+}
+
+/// Say how many commands were sent again because the dVRK showed nothing of them within
+/// `resend_after_s` (a loaded network or console; each copy the console did get runs again).
+fn say_resends(dvrk: &Ros2Dvrk) {
+    let n = dvrk.resends();
+    if n > 0 {
+        eprintln!(
+            "dVRK: {n} command{} sent again (no sign of it within resend_after_s)",
+            if n == 1 { "" } else { "s" }
+        );
+    }
 }
 
 /// The primitives' robot over ROS 2: the dVRK's first two arms and jaws (right, left), the
@@ -548,7 +562,9 @@ pub fn run_real(
         Some(seed),
     )
     .streaming(supervision.sink(recorder));
-    Ok(supervision.show(runner).run())
+    let outcome = supervision.show(runner).run();
+    say_resends(&dvrk);
+    Ok(outcome)
 }
 
 /// How often a recorded run samples the dVRK's arms between the primitives' calls, s.

@@ -67,7 +67,8 @@ fn assert_twins(wire: &str, mock: &str, what: &str, client_out: &str, node_log: 
 /// Missions in process and over ROS 2 against one sim-node on domain `k`: seeds 1 to the
 /// runs `runs_var` says (else `default_runs`), STITCH and, every `human_every`-th,
 /// STITCH + Human, `extra` given to both, `node_args` to the sim-node. Each pair must end
-/// alike with journals equal but for their times. The sim-node, for its log.
+/// alike with journals equal but for their times. The sim-node, for its log, and what the
+/// last run over ROS 2 printed.
 fn twins(
     k: u16,
     runs_var: &str,
@@ -75,13 +76,14 @@ fn twins(
     human_every: u64,
     extra: &[&str],
     node_args: &[&str],
-) -> SimNode {
+) -> (SimNode, String) {
     let runs: u64 = std::env::var(runs_var)
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or(default_runs);
     let d = domain(k);
     let node = SimNode::start(&d, node_args);
+    let mut last_out = String::new();
     for i in 0..runs {
         let seed = (i + 1).to_string();
         let plan = if i % human_every == human_every - 1 {
@@ -123,15 +125,16 @@ fn twins(
             &wire.out,
             &node.log(),
         );
+        last_out = wire.out;
     }
-    node
+    (node, last_out)
 }
 
 #[test]
 fn missions_over_ros2_match_the_in_process_mock_seed_for_seed() {
     let _one = serial();
     // STITCH_ROS2_RUNS=20 for the acceptance's twenty in a row.
-    let node = twins(0, "STITCH_ROS2_RUNS", 3, 3, &[], &[]);
+    let (node, _) = twins(0, "STITCH_ROS2_RUNS", 3, 3, &[], &[]);
     let log = node.log();
     assert!(log.contains("state_command enable"), "{log}");
     assert!(log.contains("state_command home"), "{log}");
@@ -248,7 +251,7 @@ fn pipeline_missions_over_ros2_match_the_in_process_mock_seed_for_seed() {
     // The stereo pairs go over the camera topics (rendered by the sim-node on each capture's
     // trigger), the pipeline runs here on what arrived: same outcomes as in process.
     let extra = ["--perception", "pipeline"];
-    let node = twins(8, "STITCH_ROS2_PIPELINE_RUNS", 2, 2, &extra, &[]);
+    let (node, _) = twins(8, "STITCH_ROS2_PIPELINE_RUNS", 2, 2, &extra, &[]);
     let log = node.log();
     assert!(log.contains("with the stereo camera"), "{log}");
 }
@@ -351,10 +354,15 @@ fn a_lost_motion_command_is_sent_again_and_the_mission_goes_on() {
     let _one = serial();
     // The 5th motion command is lost; busy does not rise, so it is sent again (the sim-node
     // counts that as motion 6), and the mission is the in-process one.
-    let node = twins(13, "", 1, 1, &[], &["--wire-fault", "drop-command@5"]);
+    let (node, out) = twins(13, "", 1, 1, &[], &["--wire-fault", "drop-command@5"]);
     let log = node.log();
     assert!(log.contains("dropped motion 5"), "{log}");
     assert!(log.contains("sim-node: motion 6 "), "{log}");
+    // The run says at its end that it sent commands again (one at least).
+    assert!(
+        out.contains(" sent again (no sign of it within resend_after_s)"),
+        "{out}"
+    );
 }
 
 #[test]

@@ -246,11 +246,16 @@ impl Failures {
 }
 
 impl Out {
+    /// Publish the snapshot, stamped now. The snapshot stays locked until it is written: the
+    /// state thread's 100 Hz stream and the main loop's publication after a motion must not
+    /// interleave, or a copy of the pose from before the motion, stamped and written after
+    /// the motion's own, reaches the client last, and a `measured_cp` read just then sees
+    /// the arm where it was. (Under load, ROS 2 runs parted from their in-process twins at a
+    /// cinch, which pulls from where `measured_cp` says the arm is: 1 mission in about 20
+    /// before, none of 105 after, 2026-12-06.)
     fn publish_measurements(&self) {
-        let (snap, stamps) = {
-            let s = self.snapshot.lock().unwrap_or_else(PoisonError::into_inner);
-            ((s.poses, s.setpoints, s.jaws), s.stamps)
-        };
+        let s = self.snapshot.lock().unwrap_or_else(PoisonError::into_inner);
+        let (snap, stamps) = ((s.poses, s.setpoints, s.jaws), s.stamps);
         let t = stamp(stamps);
         for (i, a) in self.arms.iter().enumerate() {
             let f = &self.failures;
