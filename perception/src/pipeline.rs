@@ -483,7 +483,7 @@ impl NeedlePipeline {
                 .ok_or(PerceptionError::NoMask {
                     view: "left (the expected region is out of view)".into(),
                 })?;
-            let lm = if region.whole {
+            let mut lm = if region.whole {
                 Some(seg.segment(left, rect)?).filter(|m| m.needle_count() > 0)
             } else {
                 let places = joined(seg.candidates(left, rect));
@@ -501,7 +501,6 @@ impl NeedlePipeline {
             let l = lm.roi;
             let rr = right_band(&l, range);
             let mut rm = seg.segment(right, rr)?;
-            let mut lm = lm;
             self.declutter(&mut lm);
             self.declutter(&mut rm);
             if rm.needle_count() == 0 {

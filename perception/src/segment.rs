@@ -618,13 +618,23 @@ fn label_groups(grid: &mut [u32], gw: usize, gh: usize, reach: i64) -> Vec<Group
 
 /// Clear the 8-connected components of a `w × h` mask smaller than `min` pixels.
 pub(crate) fn drop_specks(mask: &mut [u8], w: usize, h: usize, min: usize) {
+    retain_components(mask, w, h, |g, _| g.count >= min);
+}
+
+/// Clear the 8-connected components of a `w × h` mask that `keep` (each component, and how
+/// many there are) says no to.
+fn retain_components(mask: &mut [u8], w: usize, h: usize, keep: impl Fn(&Group, usize) -> bool) {
     let mut grid: Vec<u32> = mask
         .iter()
         .map(|&v| if v != 0 { u32::MAX } else { 0 })
         .collect();
     let groups = label_groups(&mut grid, w, h, 1);
+    let kept: Vec<bool> = groups.iter().map(|g| keep(g, groups.len())).collect();
+    if kept.iter().all(|&k| k) {
+        return;
+    }
     for (m, &label) in mask.iter_mut().zip(&grid) {
-        if label != 0 && groups[label as usize - 1].count < min {
+        if label != 0 && !kept[label as usize - 1] {
             *m = 0;
         }
     }
@@ -642,23 +652,9 @@ pub(crate) fn declutter(
     min_extent: usize,
     max_fill: f32,
 ) {
-    let mut grid: Vec<u32> = mask
-        .iter()
-        .map(|&v| if v != 0 { u32::MAX } else { 0 })
-        .collect();
-    let groups = label_groups(&mut grid, w, h, 1);
-    if groups.len() <= max_components {
-        return;
-    }
-    let keep: Vec<bool> = groups
-        .iter()
-        .map(|g| g.extent() >= min_extent && g.fill() <= max_fill)
-        .collect();
-    for (m, &label) in mask.iter_mut().zip(&grid) {
-        if label != 0 && !keep[label as usize - 1] {
-            *m = 0;
-        }
-    }
+    retain_components(mask, w, h, |g, n| {
+        n <= max_components || (g.extent() >= min_extent && g.fill() <= max_fill)
+    });
 }
 
 /// Check an image has the size its calibration says and a whole number of pixels.
