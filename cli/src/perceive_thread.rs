@@ -66,9 +66,21 @@ pub struct BenchThreadArgs {
     /// Write each pair's result as JSON Lines into this file.
     #[arg(long)]
     details: Option<PathBuf>,
+    /// Tell the tracer how much thread runs between the ends: the true length, off by a
+    /// normal error of this share of it (one σ, drawn from the seed), as a plan that knows
+    /// its thread would. Without it the tracer has no length prior.
+    #[arg(long, value_parser = parse_share)]
+    length_prior: Option<f64>,
     /// Print JSON instead of a table.
     #[arg(long)]
     json: bool,
+}
+
+fn parse_share(s: &str) -> Result<f64, String> {
+    match s.trim().parse::<f64>() {
+        Ok(v) if (0.0..=1.0).contains(&v) => Ok(v),
+        _ => Err(format!("{s:?}: expected a share from 0 to 1 (0.1 = 10 %)")),
+    }
 }
 
 fn parse_length(s: &str) -> Result<f64, String> {
@@ -218,8 +230,15 @@ pub fn bench(args: BenchThreadArgs) -> anyhow::Result<u8> {
         let results: Vec<ThreadResult> = match set {
             EvalSet::Own => {
                 let (renderer, world) = mock_renderer(args.seed)?;
-                let samples =
+                let mut samples =
                     eval::own_set(args.frames, args.seed, Needle::default(), &world.phantom());
+                if let Some(share) = args.length_prior {
+                    eval::give_length_prior(
+                        samples.iter_mut().map(|s| &mut s.sample),
+                        share,
+                        args.seed,
+                    );
+                }
                 eval::run_own(
                     &params,
                     &segmenter as &dyn Segmenter,
@@ -233,8 +252,11 @@ pub fn bench(args: BenchThreadArgs) -> anyhow::Result<u8> {
                     std::fs::create_dir_all(d)
                         .with_context(|| format!("cannot create {}", d.display()))?;
                 }
-                let samples =
+                let mut samples =
                     eval::independent_set(args.independent_frames, args.seed, Needle::default());
+                if let Some(share) = args.length_prior {
+                    eval::give_length_prior(samples.iter_mut().map(|(_, t)| t), share, args.seed);
+                }
                 eval::run_independent(&params, &segmenter, &samples, args.render_cache.as_deref())
             }
         };
@@ -262,10 +284,14 @@ pub fn bench(args: BenchThreadArgs) -> anyhow::Result<u8> {
         writeln!(out, "{}", table(&rows))?;
         writeln!(
             out,
-            "segmenter {}, seed {}, {:.0} s in all (rendering included; the time column is the \
-             tracer's alone, one core)",
+            "segmenter {}, seed {}, {}, {:.0} s in all (rendering included; the time column is \
+             the tracer's alone, one core)",
             args.segmenter,
             args.seed,
+            match args.length_prior {
+                Some(s) => format!("a length prior off by {:.0} % (1σ)", 100.0 * s),
+                None => "no length prior".into(),
+            },
             started.elapsed().as_secs_f64()
         )?;
     }

@@ -757,3 +757,30 @@ fn a_rendered_thread_on_disk_is_traced_near_its_truth_and_a_missing_one_fails_ty
     assert_eq!(out.status.code(), Some(2));
     assert!(text(&out.stderr).contains("x,y,z"), "{}", text(&out.stderr));
 }
+
+#[test]
+fn the_thread_bench_takes_a_length_prior_and_refuses_a_share_out_of_range() {
+    let out = stitch(&[
+        "bench",
+        "thread",
+        "--frames",
+        "2",
+        "--sets",
+        "own",
+        "--length-prior",
+        "0.1",
+    ]);
+    assert_eq!(out.status.code(), Some(0), "{}", text(&out.stderr));
+    assert!(
+        text(&out.stdout).contains("a length prior off by 10 % (1σ)"),
+        "{}",
+        text(&out.stdout)
+    );
+    let out = stitch(&["bench", "thread", "--length-prior", "1.5"]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(
+        text(&out.stderr).contains("a share from 0 to 1"),
+        "{}",
+        text(&out.stderr)
+    );
+}

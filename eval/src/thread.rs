@@ -160,6 +160,24 @@ pub fn independent_set(
         .collect()
 }
 
+/// Give every sample a length prior: its true length, off by a normal share of `share`
+/// (one σ; drawn from `seed` and the sample's place in the set, cut at ±3σ): what a plan
+/// knows when it knows how much thread it loaded and how much the stitches took, to so much.
+pub fn give_length_prior<'a>(
+    samples: impl IntoIterator<Item = &'a mut ThreadSample>,
+    share: f64,
+    seed: u64,
+) {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x1e46_74f0_0000_0000);
+    for s in samples {
+        // Box–Muller: one standard normal from two uniforms.
+        let (u1, u2): (f64, f64) = (rng.random_range(f64::EPSILON..1.0), rng.random());
+        let z = ((-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()).clamp(-3.0, 3.0);
+        let truth: f64 = s.truth.windows(2).map(|w| (w[1] - w[0]).norm()).sum();
+        s.hint.length_m = Some(truth * (1.0 + share * z).max(0.1));
+    }
+}
+
 /// How one trace compares with its truth.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct ThreadResult {

@@ -398,273 +398,375 @@ fn trace_in(
             block_path(&cells)
         }
     };
-    let cells: Vec<usize> = local_path
-        .iter()
-        .map(|&(x, y, _)| cell(x + f64::from(roi.x0), y + f64::from(roi.y0)))
-        .collect();
-    let path: Vec<(f64, f64, bool)> = local_path.into_iter().map(to_image).collect();
-    if path.len() < 3 {
-        return Err(PerceptionError::ThreadUntraced {
-            why: "the ends are too close together in the image to trace between".into(),
-        });
-    }
-    let touches = path.iter().any(|&(x, y, on)| {
-        on && (x < f64::from(roi.x0) + 2.0
-            || y < f64::from(roi.y0) + 2.0
-            || x > f64::from(roi.x1) - 2.0
-            || y > f64::from(roi.y1) - 2.0)
-    }) || {
-        // Thread connected to the path that leaves the region is as telling.
-        let border = |i: usize| {
-            let (x, y) = (i % cw, i / cw);
-            x == 0 || y == 0 || x + 1 == cw || y + 1 == ch
-        };
-        grid.reaches_border(&cells, border)
-    };
-    // Arc length along the path (smoothed), pixels.
-    let smooth: Vec<[f64; 2]> = (0..path.len())
-        .map(|k| {
-            let (a, b) = (k.saturating_sub(3), (k + 3).min(path.len() - 1));
-            let n = (b - a + 1) as f64;
-            let s = path[a..=b]
-                .iter()
-                .fold([0.0, 0.0], |s, p| [s[0] + p.0, s[1] + p.1]);
-            [s[0] / n, s[1] / n]
-        })
-        .collect();
-    let mut t = vec![0.0; path.len()];
-    for k in 1..path.len() {
-        t[k] = t[k - 1] + (smooth[k][0] - smooth[k - 1][0]).hypot(smooth[k][1] - smooth[k - 1][1]);
-    }
-    let total = t[path.len() - 1].max(1.0);
-    let on_len: f64 = (1..path.len())
-        .filter(|&k| path[k].2 && path[k - 1].2)
-        .map(|k| t[k] - t[k - 1])
-        .sum();
-    let seen_share = on_len / total;
-    if seen_share < params.min_seen_share {
-        return Err(PerceptionError::ThreadHidden { seen_share });
-    }
-
-    // Observations: centres in the left view, disparities where the rows cross it.
-    let lview = View {
-        image: left,
-        roi,
-        mask: &mask,
-    };
-    let sin_min = params.min_crossing_rad.sin();
-    let mut uv = Vec::new(); // (t, u, v)
-    // Every row crossing: its arc length, its centre in the left view and its row.
-    let mut rows_crossed: Vec<(f64, f64, u32)> = Vec::new();
-    let mut measured_rows = std::collections::HashSet::new();
-    for k in 0..path.len() {
-        let (x, y, on) = path[k];
-        if !on {
-            continue;
+    // The rest, from a path: correspondences between the views, and the fit.
+    // (`prior`: the length prior the fit's smoothing is chosen by, if any.)
+    let finish = |local_path: Vec<(f64, f64, bool)>,
+                  prior: Option<f64>|
+     -> Result<(ThreadTrace, bool), PerceptionError> {
+        let cells: Vec<usize> = local_path
+            .iter()
+            .map(|&(x, y, _)| cell(x + f64::from(roi.x0), y + f64::from(roi.y0)))
+            .collect();
+        let path: Vec<(f64, f64, bool)> = local_path.into_iter().map(to_image).collect();
+        if path.len() < 3 {
+            return Err(PerceptionError::ThreadUntraced {
+                why: "the ends are too close together in the image to trace between".into(),
+            });
         }
-        let (a, b) = (k.saturating_sub(4), (k + 4).min(path.len() - 1));
-        let (tx, ty) = (smooth[b][0] - smooth[a][0], smooth[b][1] - smooth[a][1]);
-        let n = tx.hypot(ty);
-        if n < 1e-9 {
-            continue;
-        }
-        let row = y as u32;
-        if (ty / n).abs() >= sin_min {
-            let Some((l0, l1)) = lview.run(x as i64, row) else {
-                continue;
+        let touches = path.iter().any(|&(x, y, on)| {
+            on && (x < f64::from(roi.x0) + 2.0
+                || y < f64::from(roi.y0) + 2.0
+                || x > f64::from(roi.x1) - 2.0
+                || y > f64::from(roi.y1) - 2.0)
+        }) || {
+            // Thread connected to the path that leaves the region is as telling.
+            let border = |i: usize| {
+                let (x, y) = (i % cw, i / cw);
+                x == 0 || y == 0 || x + 1 == cw || y + 1 == ch
             };
-            let xl = lview.centre(l0, l1, row);
-            uv.push((t[k], xl, y));
-            if measured_rows.insert((row, l0)) {
-                rows_crossed.push((t[k], xl, row));
-            }
-        } else if let Some(yc) = lview.column_centre(x as i64, row) {
-            uv.push((t[k], x, yc));
-        }
-    }
-    let (right_roi, rmask) = match band_mask {
-        Some(m) => (band, m),
-        None => {
-            let block = segmenter.thread_mask_block_px().unwrap_or(1);
-            let roi = read_region(band, &rows_crossed, disparity, block);
-            if roi.is_empty() {
-                (roi, Vec::new())
-            } else {
-                (roi, right_mask(segmenter, right, roi)?)
-            }
-        }
-    };
-    let rview = View {
-        image: right,
-        roi: right_roi,
-        mask: &rmask,
-    };
-    // Every disparity the right view's row allows, at each crossing.
-    let crossings: Vec<(f64, Vec<f64>)> = rows_crossed // (t, candidate disparities)
-        .iter()
-        .filter_map(|&(t, xl, row)| {
-            let c: Vec<f64> = rview
-                .runs(xl - disparity[1], xl - disparity[0], row)
-                .into_iter()
-                .map(|xr| xl - xr)
-                .collect();
-            (!c.is_empty()).then_some((t, c))
-        })
-        .collect();
-    let disp = smoothest(
-        &crossings,
-        start.map(|s| (0.0, s[2])),
-        (total, swage[2]),
-        params.search_px,
-    );
-    if disp.len() < params.min_matched {
-        return Err(PerceptionError::ThreadUntraced {
-            why: format!(
-                "only {} points matched between the views ({} needed)",
-                disp.len(),
-                params.min_matched
-            ),
-        });
-    }
-
-    // The ends, as observations with the hint's uncertainty.
-    let end_obs = |e: [f64; 3]| -> [f64; 3] {
-        let z = calib.fx * calib.baseline_m / e[2];
-        let s_px = calib.fx * params.end_sigma_m / z;
-        let s_d = e[2] / z * params.end_sigma_m;
-        [s_px, s_px, s_d.max(0.1)]
-    };
-    let mut ends: Vec<(f64, [f64; 3], [f64; 3])> = vec![(total, swage, end_obs(swage))];
-    if let Some(s) = start {
-        ends.push((0.0, s, end_obs(s)));
-    }
-    let k_count = ((total / params.knot_px).ceil() as usize + 3).clamp(6, 80);
-    let basis = Basis {
-        count: k_count,
-        span: total,
-    };
-    let cs = params.centre_sigma_px;
-    let ds = params.disparity_sigma_px;
-    let axis_obs = |axis: usize| -> Vec<(f64, f64, f64)> {
-        let mut o: Vec<(f64, f64, f64)> = match axis {
-            0 => uv.iter().map(|&(t, u, _)| (t, u, cs)).collect(),
-            1 => uv.iter().map(|&(t, _, v)| (t, v, cs)).collect(),
-            _ => disp.iter().map(|&(t, d)| (t, d, ds)).collect(),
+            grid.reaches_border(&cells, border)
         };
-        o.extend(ends.iter().map(|(t, e, s)| (*t, e[axis], s[axis])));
-        o
-    };
-    let fit_all = |smoothing: f64| -> Option<[Fit; 3]> {
-        let mut fits = Vec::with_capacity(3);
-        for axis in 0..3 {
-            let mut obs = axis_obs(axis);
-            let mut f = basis.fit(&obs, smoothing)?;
-            // Once: drop observations far off the first fit (a wrong match, a speck).
-            let floor = if axis == 2 { 1.5 } else { 2.0 };
-            let before = obs.len();
-            obs.retain(|&(t, y, s)| (basis.eval(&f.coef, t) - y).abs() <= (4.0 * s).max(floor));
-            if obs.len() < before {
-                f = basis.fit(&obs, smoothing)?;
+        // Arc length along the path (smoothed), pixels.
+        let smooth: Vec<[f64; 2]> = (0..path.len())
+            .map(|k| {
+                let (a, b) = (k.saturating_sub(3), (k + 3).min(path.len() - 1));
+                let n = (b - a + 1) as f64;
+                let s = path[a..=b]
+                    .iter()
+                    .fold([0.0, 0.0], |s, p| [s[0] + p.0, s[1] + p.1]);
+                [s[0] / n, s[1] / n]
+            })
+            .collect();
+        let mut t = vec![0.0; path.len()];
+        for k in 1..path.len() {
+            t[k] =
+                t[k - 1] + (smooth[k][0] - smooth[k - 1][0]).hypot(smooth[k][1] - smooth[k - 1][1]);
+        }
+        let total = t[path.len() - 1].max(1.0);
+        let on_len: f64 = (1..path.len())
+            .filter(|&k| path[k].2 && path[k - 1].2)
+            .map(|k| t[k] - t[k - 1])
+            .sum();
+        let seen_share = on_len / total;
+        if seen_share < params.min_seen_share {
+            return Err(PerceptionError::ThreadHidden { seen_share });
+        }
+
+        // Observations: centres in the left view, disparities where the rows cross it.
+        let lview = View {
+            image: left,
+            roi,
+            mask: &mask,
+        };
+        let sin_min = params.min_crossing_rad.sin();
+        let mut uv = Vec::new(); // (t, u, v)
+        // Every row crossing: its arc length, its centre in the left view and its row.
+        let mut rows_crossed: Vec<(f64, f64, u32)> = Vec::new();
+        let mut measured_rows = std::collections::HashSet::new();
+        for k in 0..path.len() {
+            let (x, y, on) = path[k];
+            if !on {
+                continue;
             }
-            fits.push(f);
-        }
-        fits.try_into().ok()
-    };
-    let samples = ((total / 3.0).ceil() as usize).clamp(16, 600);
-    let curve = |fits: &[Fit; 3]| -> (Vec<Point>, Vec<f64>, Vec<f64>) {
-        let mut pts = Vec::with_capacity(samples + 1);
-        let mut sig = Vec::with_capacity(samples + 1);
-        let mut ts = Vec::with_capacity(samples + 1);
-        for i in 0..=samples {
-            let tt = total * i as f64 / samples as f64;
-            let (u, v, d) = (
-                basis.eval(&fits[0].coef, tt),
-                basis.eval(&fits[1].coef, tt),
-                basis.eval(&fits[2].coef, tt).max(1.0),
-            );
-            let z = calib.fx * calib.baseline_m / d;
-            let (xc, yc) = ((u - calib.cx) * z / calib.fx, (v - calib.cy) * z / calib.fy);
-            // Back-projection's Jacobian, applied to each axis's posterior variance.
-            let (su2, sv2, sd2) = (
-                fits[0].variance(&basis, tt) + cs * cs * 0.25,
-                fits[1].variance(&basis, tt) + cs * cs * 0.25,
-                fits[2].variance(&basis, tt) + ds * ds * 0.25,
-            );
-            let dz_dd = z / d;
-            let var = su2 * (z / calib.fx).powi(2)
-                + sv2 * (z / calib.fy).powi(2)
-                + sd2 * (dz_dd.powi(2) * (1.0 + (xc / z).powi(2) + (yc / z).powi(2)));
-            pts.push(calib.camera_to_robot * Point::new(xc, yc, z));
-            sig.push(var.sqrt());
-            ts.push(tt);
-        }
-        (pts, sig, ts)
-    };
-    let length = |pts: &[Point]| pts.windows(2).map(|w| (w[1] - w[0]).norm()).sum::<f64>();
-    let mut best: Option<([Fit; 3], f64)> = None;
-    match hint.length_m.filter(|l| *l > 0.0) {
-        // A length prior: the smoothing whose curve's length comes nearest it, weighed
-        // against how much the fit strays from the data.
-        Some(prior) => {
-            let sigma = (prior * params.length_prior_share).max(1e-4);
-            for scale in [0.1, 0.3, 1.0, 3.0, 10.0, 30.0] {
-                let Some(fits) = fit_all(params.smoothing * scale) else {
+            let (a, b) = (k.saturating_sub(4), (k + 4).min(path.len() - 1));
+            let (tx, ty) = (smooth[b][0] - smooth[a][0], smooth[b][1] - smooth[a][1]);
+            let n = tx.hypot(ty);
+            if n < 1e-9 {
+                continue;
+            }
+            let row = y as u32;
+            if (ty / n).abs() >= sin_min {
+                let Some((l0, l1)) = lview.run(x as i64, row) else {
                     continue;
                 };
-                let (pts, _, _) = curve(&fits);
-                let chi: f64 = fits.iter().map(|f| f.chi2).sum::<f64>()
-                    / (uv.len() + disp.len()).max(1) as f64;
-                let score = ((length(&pts) - prior) / sigma).powi(2) + chi;
-                if best.as_ref().is_none_or(|(_, s)| score < *s) {
-                    best = Some((fits, score));
+                let xl = lview.centre(l0, l1, row);
+                uv.push((t[k], xl, y));
+                if measured_rows.insert((row, l0)) {
+                    rows_crossed.push((t[k], xl, row));
                 }
+            } else if let Some(yc) = lview.column_centre(x as i64, row) {
+                uv.push((t[k], x, yc));
             }
         }
-        None => best = fit_all(params.smoothing).map(|f| (f, 0.0)),
-    }
-    let Some((fits, _)) = best else {
-        return Err(PerceptionError::ThreadUntraced {
-            why: "the spline fit was singular".into(),
-        });
+        let (right_roi, rmask) = match &band_mask {
+            Some(m) => (band, std::borrow::Cow::Borrowed(m.as_slice())),
+            None => {
+                let block = segmenter.thread_mask_block_px().unwrap_or(1);
+                let roi = read_region(band, &rows_crossed, disparity, block);
+                if roi.is_empty() {
+                    (roi, std::borrow::Cow::Owned(Vec::new()))
+                } else {
+                    (
+                        roi,
+                        std::borrow::Cow::Owned(right_mask(segmenter, right, roi)?),
+                    )
+                }
+            }
+        };
+        let rview = View {
+            image: right,
+            roi: right_roi,
+            mask: &rmask,
+        };
+        // Every disparity the right view's row allows, at each crossing.
+        let crossings: Vec<(f64, Vec<f64>)> = rows_crossed // (t, candidate disparities)
+            .iter()
+            .filter_map(|&(t, xl, row)| {
+                let c: Vec<f64> = rview
+                    .runs(xl - disparity[1], xl - disparity[0], row)
+                    .into_iter()
+                    .map(|xr| xl - xr)
+                    .collect();
+                (!c.is_empty()).then_some((t, c))
+            })
+            .collect();
+        let disp = smoothest(
+            &crossings,
+            start.map(|s| (0.0, s[2])),
+            (total, swage[2]),
+            params.search_px,
+        );
+        if disp.len() < params.min_matched {
+            return Err(PerceptionError::ThreadUntraced {
+                why: format!(
+                    "only {} points matched between the views ({} needed)",
+                    disp.len(),
+                    params.min_matched
+                ),
+            });
+        }
+
+        // The ends, as observations with the hint's uncertainty.
+        let end_obs = |e: [f64; 3]| -> [f64; 3] {
+            let z = calib.fx * calib.baseline_m / e[2];
+            let s_px = calib.fx * params.end_sigma_m / z;
+            let s_d = e[2] / z * params.end_sigma_m;
+            [s_px, s_px, s_d.max(0.1)]
+        };
+        let mut ends: Vec<(f64, [f64; 3], [f64; 3])> = vec![(total, swage, end_obs(swage))];
+        if let Some(s) = start {
+            ends.push((0.0, s, end_obs(s)));
+        }
+        let k_count = ((total / params.knot_px).ceil() as usize + 3).clamp(6, 80);
+        let basis = Basis {
+            count: k_count,
+            span: total,
+        };
+        let cs = params.centre_sigma_px;
+        let ds = params.disparity_sigma_px;
+        let axis_obs = |axis: usize| -> Vec<(f64, f64, f64)> {
+            let mut o: Vec<(f64, f64, f64)> = match axis {
+                0 => uv.iter().map(|&(t, u, _)| (t, u, cs)).collect(),
+                1 => uv.iter().map(|&(t, _, v)| (t, v, cs)).collect(),
+                _ => disp.iter().map(|&(t, d)| (t, d, ds)).collect(),
+            };
+            o.extend(ends.iter().map(|(t, e, s)| (*t, e[axis], s[axis])));
+            o
+        };
+        let fit_all = |smoothing: f64| -> Option<[Fit; 3]> {
+            let mut fits = Vec::with_capacity(3);
+            for axis in 0..3 {
+                let mut obs = axis_obs(axis);
+                let mut f = basis.fit(&obs, smoothing)?;
+                // Once: drop observations far off the first fit (a wrong match, a speck).
+                let floor = if axis == 2 { 1.5 } else { 2.0 };
+                let before = obs.len();
+                obs.retain(|&(t, y, s)| (basis.eval(&f.coef, t) - y).abs() <= (4.0 * s).max(floor));
+                if obs.len() < before {
+                    f = basis.fit(&obs, smoothing)?;
+                }
+                fits.push(f);
+            }
+            fits.try_into().ok()
+        };
+        let samples = ((total / 3.0).ceil() as usize).clamp(16, 600);
+        // (`sigma`: whether to work out each point's uncertainty too; the choice of smoothing
+        // needs only the points.)
+        let curve = |fits: &[Fit; 3], sigma: bool| -> (Vec<Point>, Vec<f64>, Vec<f64>) {
+            let mut pts = Vec::with_capacity(samples + 1);
+            let mut sig = Vec::with_capacity(samples + 1);
+            let mut ts = Vec::with_capacity(samples + 1);
+            for i in 0..=samples {
+                let tt = total * i as f64 / samples as f64;
+                let (u, v, d) = (
+                    basis.eval(&fits[0].coef, tt),
+                    basis.eval(&fits[1].coef, tt),
+                    basis.eval(&fits[2].coef, tt).max(1.0),
+                );
+                let z = calib.fx * calib.baseline_m / d;
+                let (xc, yc) = ((u - calib.cx) * z / calib.fx, (v - calib.cy) * z / calib.fy);
+                pts.push(calib.camera_to_robot * Point::new(xc, yc, z));
+                ts.push(tt);
+                if !sigma {
+                    continue;
+                }
+                // Back-projection's Jacobian, applied to each axis's posterior variance.
+                let (su2, sv2, sd2) = (
+                    fits[0].variance(&basis, tt) + cs * cs * 0.25,
+                    fits[1].variance(&basis, tt) + cs * cs * 0.25,
+                    fits[2].variance(&basis, tt) + ds * ds * 0.25,
+                );
+                let dz_dd = z / d;
+                let var = su2 * (z / calib.fx).powi(2)
+                    + sv2 * (z / calib.fy).powi(2)
+                    + sd2 * (dz_dd.powi(2) * (1.0 + (xc / z).powi(2) + (yc / z).powi(2)));
+                sig.push(var.sqrt());
+            }
+            (pts, sig, ts)
+        };
+        let length = |pts: &[Point]| pts.windows(2).map(|w| (w[1] - w[0]).norm()).sum::<f64>();
+        let mut best: Option<([Fit; 3], f64)> = None;
+        match prior {
+            // A length prior: the smoothing whose curve's length comes nearest it, weighed
+            // against how much the fit strays from the data.
+            Some(prior) => {
+                let sigma = (prior * params.length_prior_share).max(1e-4);
+                for scale in [0.1, 0.3, 1.0, 3.0, 10.0, 30.0] {
+                    let Some(fits) = fit_all(params.smoothing * scale) else {
+                        continue;
+                    };
+                    let (pts, _, _) = curve(&fits, false);
+                    let chi: f64 = fits.iter().map(|f| f.chi2).sum::<f64>()
+                        / (uv.len() + disp.len()).max(1) as f64;
+                    let score = ((length(&pts) - prior) / sigma).powi(2) + chi;
+                    if best.as_ref().is_none_or(|(_, s)| score < *s) {
+                        best = Some((fits, score));
+                    }
+                }
+            }
+            None => best = fit_all(params.smoothing).map(|f| (f, 0.0)),
+        }
+        let Some((fits, _)) = best else {
+            return Err(PerceptionError::ThreadUntraced {
+                why: "the spline fit was singular".into(),
+            });
+        };
+        let (points, sigma_m, ts) = curve(&fits, true);
+        // Arc length in metres at each sample, to place the hidden spans.
+        let mut arc = vec![0.0; points.len()];
+        for i in 1..points.len() {
+            arc[i] = arc[i - 1] + (points[i] - points[i - 1]).norm();
+        }
+        let at = |tt: f64| -> f64 {
+            let i = ts.partition_point(|&x| x < tt).min(ts.len() - 1);
+            arc[i]
+        };
+        let mut hidden = Vec::new();
+        let mut k = 0;
+        while k < path.len() {
+            if path[k].2 {
+                k += 1;
+                continue;
+            }
+            let s = k;
+            while k < path.len() && !path[k].2 {
+                k += 1;
+            }
+            if t[k.min(path.len() - 1)] - t[s] >= 3.0 {
+                hidden.push([at(t[s.saturating_sub(1)]), at(t[k.min(path.len() - 1)])]);
+            }
+        }
+        let length_m = arc.last().copied().unwrap_or(0.0);
+        Ok((
+            ThreadTrace {
+                points,
+                sigma_m,
+                length_m,
+                hidden,
+                seen_share,
+                matched: disp.len(),
+                left_path_px: path.iter().map(|&(x, y, _)| [x, y]).collect(),
+            },
+            touches,
+        ))
     };
-    let (points, sigma_m, ts) = curve(&fits);
-    // Arc length in metres at each sample, to place the hidden spans.
-    let mut arc = vec![0.0; points.len()];
-    for i in 1..points.len() {
-        arc[i] = arc[i - 1] + (points[i] - points[i - 1]).norm();
-    }
-    let at = |tt: f64| -> f64 {
-        let i = ts.partition_point(|&x| x < tt).min(ts.len() - 1);
-        arc[i]
+    let first = finish(local_path.clone(), hint.length_m.filter(|l| *l > 0.0));
+    // With a length prior the trace falls well short of: thread the path does not pass (a
+    // strand the view shows apart from it, a loop whose neck the raised wound or a tool
+    // hides) spliced in where its ends lie nearest the path, the largest first, one more at
+    // a time while the trace stays short. The trace whose length comes nearest the prior
+    // wins.
+    let (Some(prior), Some(_)) = (hint.length_m.filter(|l| *l > 0.0), start) else {
+        return first;
     };
-    let mut hidden = Vec::new();
-    let mut k = 0;
-    while k < path.len() {
-        if path[k].2 {
-            k += 1;
-            continue;
-        }
-        let s = k;
-        while k < path.len() && !path[k].2 {
-            k += 1;
-        }
-        if t[k.min(path.len() - 1)] - t[s] >= 3.0 {
-            hidden.push([at(t[s.saturating_sub(1)]), at(t[k.min(path.len() - 1)])]);
+    let floor = prior * (1.0 - 2.0 * params.length_prior_share);
+    if matches!(&first, Ok((t, _)) if t.length_m >= floor) {
+        return first;
+    }
+    let lcell = |(x, y, _): (f64, f64, bool)| cell(x + f64::from(roi.x0), y + f64::from(roi.y0));
+    // A splice's bridge: the cheapest path between the two (it may run along thread).
+    let bridge =
+        |a: (f64, f64, bool), b: (f64, f64, bool)| block_path(&grid.path(lcell(a), Some(lcell(b))));
+    // The splices are fitted at the default smoothing, the one chosen then again with the
+    // prior's.
+    let mut traces = vec![(first, None)];
+    let mut path = local_path;
+    for _ in 0..MAX_STRANDS {
+        let on_path: Vec<usize> = path.iter().map(|&q| lcell(q)).collect();
+        let Some(strand) = grid.strands(&on_path).into_iter().next() else {
+            break;
+        };
+        path = splice(&path, block_path(&strand), bridge);
+        let t = finish(path.clone(), None);
+        let enough = matches!(&t, Ok((t, _)) if t.length_m >= floor);
+        traces.push((t, Some(path.clone())));
+        if enough {
+            break;
         }
     }
-    let length_m = arc.last().copied().unwrap_or(0.0);
-    Ok((
-        ThreadTrace {
-            points,
-            sigma_m,
-            length_m,
-            hidden,
-            seen_share,
-            matched: disp.len(),
-            left_path_px: path.iter().map(|&(x, y, _)| [x, y]).collect(),
-        },
-        touches,
-    ))
+    let off = |t: &Result<(ThreadTrace, bool), PerceptionError>| {
+        t.as_ref()
+            .map_or(f64::INFINITY, |(t, _)| (t.length_m - prior).abs())
+    };
+    let best = (1..traces.len()).fold(0, |b, k| {
+        if off(&traces[k].0) < off(&traces[b].0) {
+            k
+        } else {
+            b
+        }
+    });
+    match traces.swap_remove(best) {
+        (_, Some(path)) => finish(path, Some(prior)),
+        (first, None) => first,
+    }
+}
+
+/// Most strands spliced into one path.
+const MAX_STRANDS: usize = 3;
+/// The fewest 2 × 2 blocks a strand apart from the path has to be spliced in.
+const MIN_STRAND_CELLS: usize = 10;
+
+/// `path` with `strand` spliced in: from the path's point nearest one of the strand's ends,
+/// bridged to it, along the strand, bridged back to the path's point nearest its other end,
+/// and on (what the path did between those two points is left out).
+fn splice(
+    path: &[(f64, f64, bool)],
+    mut strand: Vec<(f64, f64, bool)>,
+    bridge: impl Fn((f64, f64, bool), (f64, f64, bool)) -> Vec<(f64, f64, bool)>,
+) -> Vec<(f64, f64, bool)> {
+    let (Some(&a), Some(&b)) = (strand.first(), strand.last()) else {
+        return path.to_vec();
+    };
+    let nearest = |q: (f64, f64, bool)| {
+        (0..path.len())
+            .min_by(|&i, &j| {
+                let d = |k: usize| (path[k].0 - q.0).hypot(path[k].1 - q.1);
+                d(i).total_cmp(&d(j))
+            })
+            .unwrap_or(0)
+    };
+    let (mut i, mut j) = (nearest(a), nearest(b));
+    if i > j {
+        strand.reverse();
+        std::mem::swap(&mut i, &mut j);
+    }
+    let (a, b) = (strand[0], strand[strand.len() - 1]);
+    let mut out = path[..=i].to_vec();
+    out.extend(bridge(path[i], a).into_iter().skip(1));
+    out.extend(strand.into_iter().skip(1));
+    out.extend(bridge(b, path[j]).into_iter().skip(1));
+    out.extend(path[j + 1..].iter().copied());
+    out
 }
 
 /// The smoothest sequence of disparities through the crossings (Viterbi): one candidate
@@ -921,6 +1023,79 @@ impl Grid<'_> {
         }
         mark(&mut out, seed, 3 * r);
         out
+    }
+
+    /// Thread apart from a path: the 8-connected pieces of thread more than two cells from
+    /// every cell of `path`, of `MIN_STRAND_CELLS` or more, the largest first; each as the
+    /// cells from one of its ends to the other (the two farthest apart along it).
+    fn strands(&self, path: &[usize]) -> Vec<Vec<usize>> {
+        let n = self.w * self.h;
+        // 0: free thread, 1: not thread or near the path, 2: taken into a piece.
+        let mut state: Vec<u8> = self.mask.iter().map(|&m| u8::from(m == 0)).collect();
+        for &i in path {
+            let (x, y) = (i % self.w, i / self.w);
+            for yy in y.saturating_sub(2)..(y + 3).min(self.h) {
+                for xx in x.saturating_sub(2)..(x + 3).min(self.w) {
+                    state[yy * self.w + xx] = 1;
+                }
+            }
+        }
+        let mut pieces: Vec<Vec<usize>> = Vec::new();
+        for seed in 0..n {
+            if state[seed] != 0 {
+                continue;
+            }
+            state[seed] = 2;
+            let mut piece = vec![seed];
+            let mut k = 0;
+            while k < piece.len() {
+                let i = piece[k];
+                k += 1;
+                for (j, _) in self.neighbours(i) {
+                    if state[j] == 0 {
+                        state[j] = 2;
+                        piece.push(j);
+                    }
+                }
+            }
+            if piece.len() >= MIN_STRAND_CELLS {
+                pieces.push(piece);
+            }
+        }
+        pieces.sort_by_key(|p| std::cmp::Reverse(p.len()));
+        // Breadth first within a piece: the cell farthest from `from`, and the way there.
+        let mut dist = vec![u32::MAX; n];
+        let mut parent = vec![u32::MAX; n];
+        let mut farthest = |piece: &[usize], from: usize| -> Vec<usize> {
+            for &i in piece {
+                dist[i] = u32::MAX;
+            }
+            dist[from] = 0;
+            let mut queue = std::collections::VecDeque::from([from]);
+            let mut last = from;
+            while let Some(i) = queue.pop_front() {
+                last = i;
+                for (j, _) in self.neighbours(i) {
+                    if state[j] == 2 && dist[j] == u32::MAX {
+                        dist[j] = dist[i] + 1;
+                        parent[j] = i as u32;
+                        queue.push_back(j);
+                    }
+                }
+            }
+            let mut way = vec![last];
+            while *way.last().unwrap_or(&from) != from {
+                way.push(parent[way[way.len() - 1]] as usize);
+            }
+            way
+        };
+        pieces
+            .iter()
+            .map(|p| {
+                let end = farthest(p, p[0])[0];
+                farthest(p, end)
+            })
+            .collect()
     }
 
     /// Whether thread 8-connected to the path's thread cells touches the region's border.
@@ -1359,21 +1534,27 @@ struct Basis {
     span: f64,
 }
 
-/// One axis's fitted spline: coefficients, the inverse of its normal matrix (the posterior
-/// covariance of the coefficients, in the observations' units) and its χ².
+/// One axis's fitted spline: coefficients, its normal matrix's Cholesky factor (whose
+/// inverse, scaled, is the posterior covariance of the coefficients, in the observations'
+/// units; worked out when first asked for, since most fits are only looked at for their
+/// curve) and its χ².
 struct Fit {
     coef: DVector<f64>,
-    cov: DMatrix<f64>,
+    chol: nalgebra::Cholesky<f64, nalgebra::Dyn>,
+    /// The covariance's scale: the reduced χ² where it exceeds 1.
+    scale: f64,
+    cov: std::cell::OnceCell<DMatrix<f64>>,
     chi2: f64,
 }
 
 impl Fit {
     fn variance(&self, b: &Basis, t: f64) -> f64 {
+        let cov = self.cov.get_or_init(|| self.chol.inverse() * self.scale);
         let (i, w) = b.weights(t);
         let mut v = 0.0;
         for (a, wa) in w.iter().enumerate() {
             for (c, wc) in w.iter().enumerate() {
-                v += wa * wc * self.cov[(i + a, i + c)];
+                v += wa * wc * cov[(i + a, i + c)];
             }
         }
         v.max(0.0)
@@ -1431,7 +1612,6 @@ impl Basis {
         }
         let chol = a.cholesky()?;
         let coef = chol.solve(&rhs);
-        let mut cov = chol.inverse();
         let chi2: f64 = obs
             .iter()
             .map(|&(t, y, s)| {
@@ -1442,8 +1622,13 @@ impl Basis {
         // Residuals larger than the stated uncertainties say the uncertainties were too
         // small: scale the covariance by the reduced χ² when it exceeds 1.
         let dof = obs.len().saturating_sub(n / 2).max(1) as f64;
-        cov *= (chi2 / dof).max(1.0);
-        Some(Fit { coef, cov, chi2 })
+        Some(Fit {
+            coef,
+            chol,
+            scale: (chi2 / dof).max(1.0),
+            cov: std::cell::OnceCell::new(),
+            chi2,
+        })
     }
 }
 

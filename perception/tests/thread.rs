@@ -393,3 +393,70 @@ fn a_loop_whose_start_is_hidden_is_walked_from_the_swage_not_cut_across() {
         t.hidden
     );
 }
+
+#[test]
+fn a_loop_cut_off_by_a_hidden_neck_is_spliced_in_when_a_length_prior_says_it_is_missing() {
+    let c = calib();
+    // From an exit under a box, down and round a U below it, back up under the box, and on
+    // up to the swage: the view shows the U apart from the rest (its neck is under the
+    // box), so the path between the ends leaves it out.
+    let (z, u0, u1) = (0.15, -0.004, 0.004);
+    let truth = polyline(
+        &[
+            Point::new(-0.003, 0.010, z),
+            Point::new(u0, 0.035, z),
+            Point::new(u1, 0.035, z),
+            Point::new(0.003, 0.010, z),
+            Point::new(0.010, -0.020, z),
+        ],
+        120,
+    );
+    let px = |x: f64, y: f64| [c.fx * x / z + c.cx, c.fy * y / z + c.cy];
+    let cover = |shift: f64| {
+        let du = c.fx * shift / z;
+        let ([x0, y0], [x1, y1]) = (px(-0.008, 0.006), px(0.008, 0.014));
+        Some([x0 - du, y0, x1 - du, y1])
+    };
+    let left = draw(&c, &truth, 0.0, cover(0.0), 21);
+    let right = draw(&c, &truth, c.baseline_m, cover(c.baseline_m), 22);
+    let true_len = length(&truth);
+    let hint = |length_m| ThreadHint {
+        start: Some(truth[0]),
+        swage: truth[truth.len() - 1],
+        length_m,
+    };
+    let bottom = Point::new(0.0, 0.035, z);
+    let near_bottom = |t: &stitch_perception::ThreadTrace| {
+        t.points
+            .iter()
+            .map(|p| (p - bottom).norm())
+            .fold(f64::INFINITY, f64::min)
+    };
+    // Without a prior: the visible path, far short, nowhere near the U.
+    let t = traced(&c, &left, &right, &hint(None)).expect("traced");
+    assert!(t.length_m < 0.7 * true_len, "{} of {true_len}", t.length_m);
+    assert!(near_bottom(&t) > 0.01, "{}", near_bottom(&t));
+    // With a prior (the truth's length, or 10 % over it): the U spliced in, through the
+    // hidden neck, and the length within 10 %.
+    for prior in [true_len, 1.1 * true_len] {
+        let t = traced(&c, &left, &right, &hint(Some(prior))).expect("traced");
+        let err = (t.length_m - true_len) / true_len;
+        assert!(
+            err.abs() < 0.1,
+            "prior {prior}: {} of {true_len}",
+            t.length_m
+        );
+        assert!(near_bottom(&t) < 0.001, "{}", near_bottom(&t));
+        assert!(
+            t.hidden.iter().any(|h| h[1] - h[0] > 0.003),
+            "hidden {:?}",
+            t.hidden
+        );
+    }
+    // A prior the visible path already meets leaves it as it was.
+    let short = traced(&c, &left, &right, &hint(None))
+        .expect("traced")
+        .length_m;
+    let t = traced(&c, &left, &right, &hint(Some(short))).expect("traced");
+    assert!(near_bottom(&t) > 0.01, "{}", near_bottom(&t));
+}
