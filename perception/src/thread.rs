@@ -30,6 +30,11 @@
 //!    uncertainty, outliers dropped once; their posterior variance gives each sample's
 //!    uncertainty, back-projected into metres. A length prior, when the plan knows how much
 //!    thread is free, picks the smoothing that brings the length nearest it.
+//! 5. **Splices**: when a length prior says the trace is short by more than twice its
+//!    uncertainty, thread the view shows apart from the path (a loop whose neck the raised
+//!    wound hides) is spliced in, the largest piece first, up to three; the trace whose
+//!    length comes nearest the prior wins. Without a prior nothing is spliced: not every
+//!    thread pixel in the region need be this thread (a stitch's open loop).
 //!
 //! Hand-written (no crate traces thin curves in stereo): the path search is A* on a pixel
 //! grid, the splines a small dense least-squares solve with nalgebra.
