@@ -10,12 +10,18 @@ use stitch_perception::thread::ThreadParams;
 use stitch_robot::{Needle, SimClock};
 use stitch_sim::{CameraConfig, MockDvrk, SceneConfig, StereoRenderer, Streams};
 
-#[test]
-fn rendered_threads_are_traced_near_their_truth_or_refused_typed() {
+/// The mock at seed 1 (its phantom) and its renderer.
+fn mock_and_renderer() -> (MockDvrk, StereoRenderer) {
     let world =
         MockDvrk::new(&SceneConfig::default(), Streams::new(1), SimClock::new()).expect("world");
     let renderer =
         StereoRenderer::new(CameraConfig::default(), world.phantom_view()).expect("renderer");
+    (world, renderer)
+}
+
+#[test]
+fn rendered_threads_are_traced_near_their_truth_or_refused_typed() {
+    let (world, renderer) = mock_and_renderer();
     let samples = own_set(60, 1, Needle::default(), &world.phantom());
     let params = ThreadParams::default();
     let seg = ColorSegmenter::default();
@@ -75,10 +81,7 @@ fn rendered_threads_are_traced_near_their_truth_or_refused_typed() {
 
 #[test]
 fn a_length_prior_brings_the_traces_nearer_the_true_length() {
-    let world =
-        MockDvrk::new(&SceneConfig::default(), Streams::new(1), SimClock::new()).expect("world");
-    let renderer =
-        StereoRenderer::new(CameraConfig::default(), world.phantom_view()).expect("renderer");
+    let (world, renderer) = mock_and_renderer();
     let mut samples = own_set(60, 1, Needle::default(), &world.phantom());
     let (params, seg) = (ThreadParams::default(), ColorSegmenter::default());
     let without = accuracy(&run_own(&params, &seg, &renderer, &samples, 1));
