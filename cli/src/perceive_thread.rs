@@ -34,7 +34,9 @@ pub struct ThreadArgs {
     /// metres: x,y,z. Without it the trace runs from the swage to the farthest thread.
     #[arg(long, value_parser = parse_point, allow_hyphen_values = true)]
     start: Option<[f64; 3]>,
-    /// How much thread runs between the two ends, metres, if known (a length prior).
+    /// How much thread runs between the two ends, metres, if known (a length prior, taken
+    /// as good to 10 %): it chooses the fit's smoothing, and a trace that falls short of it
+    /// takes in thread the view shows apart from its path (a loop whose neck is hidden).
     #[arg(long, value_parser = parse_length)]
     length_m: Option<f64>,
     /// The segmenter whose thread mask is traced: classical, onnx or onnx:FILE.
