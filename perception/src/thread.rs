@@ -749,7 +749,7 @@ fn splice(
     mut strand: Vec<(f64, f64, bool)>,
     bridge: impl Fn((f64, f64, bool), (f64, f64, bool)) -> Vec<(f64, f64, bool)>,
 ) -> Vec<(f64, f64, bool)> {
-    let (Some(&a), Some(&b)) = (strand.first(), strand.last()) else {
+    let (Some(&a), Some(&b), false) = (strand.first(), strand.last(), path.is_empty()) else {
         return path.to_vec();
     };
     let nearest = |q: (f64, f64, bool)| {
@@ -1708,6 +1708,34 @@ mod tests {
     }
 
     proptest::proptest! {
+        /// A splice keeps the path's two ends, takes in the whole strand in its order (or
+        /// reversed), and adds nothing off the thread but its two bridges.
+        #[test]
+        fn a_splice_keeps_the_ends_and_takes_in_the_whole_strand(
+            path in proptest::collection::vec((0.0..100.0f64, 0.0..100.0f64), 1..30),
+            strand in proptest::collection::vec((0.0..100.0f64, 0.0..100.0f64), 1..20),
+        ) {
+            let path: Vec<(f64, f64, bool)> = path.into_iter().map(|(x, y)| (x, y, true)).collect();
+            let strand: Vec<(f64, f64, bool)> =
+                strand.into_iter().map(|(x, y)| (x, y, true)).collect();
+            // Bridges as their two ends and a point half way, off the thread.
+            let bridge = |a: (f64, f64, bool), b: (f64, f64, bool)| {
+                vec![a, ((a.0 + b.0) / 2.0, (a.1 + b.1) / 2.0, false), b]
+            };
+            let out = splice(&path, strand.clone(), bridge);
+            proptest::prop_assert_eq!(out[0], path[0]);
+            let (first, last) = (out[out.len() - 1], path[path.len() - 1]);
+            proptest::prop_assert_eq!((first.0, first.1), (last.0, last.1));
+            let on: Vec<(f64, f64, bool)> = out.iter().copied().filter(|q| q.2).collect();
+            let mut back = strand.clone();
+            back.reverse();
+            let holds = |s: &[(f64, f64, bool)]| {
+                on.windows(s.len()).any(|w| w == s)
+            };
+            proptest::prop_assert!(holds(&strand) || holds(&back), "{:?}", out);
+            proptest::prop_assert_eq!(on.len(), out.len() - 2);
+        }
+
         /// The right view's mask cut to where the crossings read it gives every crossing the
         /// runs the whole band's mask gives: rows of colours in runs of 1 to 30 pixels (thread
         /// runs longer than `MAX_RUN_PX` included), any band, any crossings.
