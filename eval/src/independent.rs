@@ -1281,7 +1281,8 @@ fn gamma(v: f64) -> f32 {
     table[i] + (table[i + 1] - table[i]) * f
 }
 
-fn gaussian(rng: &mut ChaCha8Rng) -> f64 {
+/// One standard normal draw (Box–Muller).
+pub(crate) fn gaussian(rng: &mut ChaCha8Rng) -> f64 {
     let u1: f64 = rng.random_range(1e-12..1.0);
     let u2: f64 = rng.random();
     (-2.0 * u1.ln()).sqrt() * (TAU * u2).cos()

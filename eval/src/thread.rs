@@ -170,9 +170,7 @@ pub fn give_length_prior<'a>(
 ) {
     let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x1e46_74f0_0000_0000);
     for s in samples {
-        // Box–Muller: one standard normal from two uniforms.
-        let (u1, u2): (f64, f64) = (rng.random_range(f64::EPSILON..1.0), rng.random());
-        let z = ((-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()).clamp(-3.0, 3.0);
+        let z = crate::independent::gaussian(&mut rng).clamp(-3.0, 3.0);
         let truth: f64 = s.truth.windows(2).map(|w| (w[1] - w[0]).norm()).sum();
         s.hint.length_m = Some(truth * (1.0 + share * z).max(0.1));
     }
