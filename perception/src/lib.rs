@@ -1,5 +1,6 @@
 #![doc = include_str!("../README.md")]
 
+mod band;
 pub mod disparity;
 pub mod fit;
 #[cfg(feature = "onnx")]

@@ -40,8 +40,9 @@
 //! grid, the splines a small dense least-squares solve with nalgebra.
 
 use crate::PerceptionError;
+use crate::band::{self, BandCholesky, LowerBand};
 use crate::segment::{Rect, Segmenter};
-use nalgebra::{DMatrix, DVector};
+use nalgebra::DVector;
 use serde::{Deserialize, Serialize};
 use stitch_robot::{Point, RgbImage, StereoCalibration};
 
@@ -403,11 +404,9 @@ fn trace_in(
             block_path(&cells)
         }
     };
-    // The rest, from a path: correspondences between the views, and the fit.
-    // (`prior`: the length prior the fit's smoothing is chosen by, if any.)
-    let finish = |local_path: Vec<(f64, f64, bool)>,
-                  prior: Option<f64>|
-     -> Result<(ThreadTrace, bool), PerceptionError> {
+    // The rest, from a path: correspondences between the views (`observe`), and the fit
+    // (`fit`; `prior`: the length prior the fit's smoothing is chosen by, if any).
+    let observe = |local_path: Vec<(f64, f64, bool)>| -> Result<Observed, PerceptionError> {
         let cells: Vec<usize> = local_path
             .iter()
             .map(|&(x, y, _)| cell(x + f64::from(roi.x0), y + f64::from(roi.y0)))
@@ -552,6 +551,29 @@ fn trace_in(
         if let Some(s) = start {
             ends.push((0.0, s, end_obs(s)));
         }
+        Ok(Observed {
+            path,
+            t,
+            total,
+            seen_share,
+            uv,
+            disp,
+            ends,
+            touches,
+        })
+    };
+    let fit = |o: &Observed, prior: Option<f64>| -> Result<(ThreadTrace, bool), PerceptionError> {
+        let Observed {
+            path,
+            t,
+            total,
+            seen_share,
+            uv,
+            disp,
+            ends,
+            touches,
+        } = o;
+        let (total, seen_share, touches) = (*total, *seen_share, *touches);
         let k_count = ((total / params.knot_px).ceil() as usize + 3).clamp(6, 80);
         let basis = Basis {
             count: k_count,
@@ -685,13 +707,14 @@ fn trace_in(
             touches,
         ))
     };
-    let first = finish(local_path.clone(), hint.length_m.filter(|l| *l > 0.0));
+    let prior = hint.length_m.filter(|l| *l > 0.0);
+    let first = observe(local_path.clone()).and_then(|o| fit(&o, prior));
     // With a length prior the trace falls well short of: thread the path does not pass (a
     // strand the view shows apart from it, a loop whose neck the raised wound or a tool
     // hides) spliced in where its ends lie nearest the path, the largest first, one more at
     // a time while the trace stays short. The trace whose length comes nearest the prior
     // wins.
-    let (Some(prior), Some(_)) = (hint.length_m.filter(|l| *l > 0.0), start) else {
+    let (Some(prior), Some(_)) = (prior, start) else {
         return first;
     };
     let floor = prior * (1.0 - 2.0 * params.length_prior_share);
@@ -702,8 +725,8 @@ fn trace_in(
     // A splice's bridge: the cheapest path between the two (it may run along thread).
     let bridge =
         |a: (f64, f64, bool), b: (f64, f64, bool)| block_path(&grid.path(lcell(a), Some(lcell(b))));
-    // The splices are fitted at the default smoothing, the one chosen then again with the
-    // prior's.
+    // The splices are fitted at the default smoothing; the one chosen is fitted again, from
+    // the same observations, with the prior's.
     let mut traces = vec![(first, None)];
     let mut path = local_path;
     for _ in 0..MAX_STRANDS {
@@ -712,9 +735,12 @@ fn trace_in(
             break;
         };
         path = splice(&path, block_path(&strand), bridge);
-        let t = finish(path.clone(), None);
+        let (t, observed) = match observe(path.clone()) {
+            Ok(o) => (fit(&o, None), Some(o)),
+            Err(e) => (Err(e), None),
+        };
         let enough = matches!(&t, Ok((t, _)) if t.length_m >= floor);
-        traces.push((t, Some(path.clone())));
+        traces.push((t, observed));
         if enough {
             break;
         }
@@ -731,9 +757,25 @@ fn trace_in(
         }
     });
     match traces.swap_remove(best) {
-        (_, Some(path)) => finish(path, Some(prior)),
-        (first, None) => first,
+        // (A splice beats the first trace only with a trace, so it was observed.)
+        (_, Some(observed)) if best > 0 => fit(&observed, Some(prior)),
+        (t, _) => t,
     }
+}
+
+/// What a path gives before the fit: the path in image pixels, its smoothed arc length at
+/// each point and in all (pixels), the share of it on thread, the left view's centres
+/// `(t, u, v)`, the matched disparities `(t, d)`, the ends as observations `(t, [u, v, d],
+/// their σ)`, and whether thread on it runs off the region.
+struct Observed {
+    path: Vec<(f64, f64, bool)>,
+    t: Vec<f64>,
+    total: f64,
+    seen_share: f64,
+    uv: Vec<(f64, f64, f64)>,
+    disp: Vec<(f64, f64)>,
+    ends: Vec<(f64, [f64; 3], [f64; 3])>,
+    touches: bool,
 }
 
 /// Most strands spliced into one path.
@@ -1541,28 +1583,28 @@ struct Basis {
 
 /// One axis's fitted spline: coefficients, its normal matrix's Cholesky factor (whose
 /// inverse, scaled, is the posterior covariance of the coefficients, in the observations'
-/// units; worked out when first asked for, since most fits are only looked at for their
-/// curve) and its χ².
+/// units; its band, all a pointwise variance reads, is worked out when first asked for,
+/// since most fits are only looked at for their curve) and its χ².
 struct Fit {
     coef: DVector<f64>,
-    chol: nalgebra::Cholesky<f64, nalgebra::Dyn>,
+    chol: BandCholesky,
     /// The covariance's scale: the reduced χ² where it exceeds 1.
     scale: f64,
-    cov: std::cell::OnceCell<DMatrix<f64>>,
+    cov: std::cell::OnceCell<LowerBand>,
     chi2: f64,
 }
 
 impl Fit {
     fn variance(&self, b: &Basis, t: f64) -> f64 {
-        let cov = self.cov.get_or_init(|| self.chol.inverse() * self.scale);
+        let cov = self.cov.get_or_init(|| self.chol.inverse_band());
         let (i, w) = b.weights(t);
         let mut v = 0.0;
         for (a, wa) in w.iter().enumerate() {
             for (c, wc) in w.iter().enumerate() {
-                v += wa * wc * cov[(i + a, i + c)];
+                v += wa * wc * band::at(cov, i + a, i + c);
             }
         }
-        v.max(0.0)
+        (v * self.scale).max(0.0)
     }
 }
 
@@ -1595,28 +1637,28 @@ impl Basis {
     /// coefficients' second differences.
     fn fit(&self, obs: &[(f64, f64, f64)], smoothing: f64) -> Option<Fit> {
         let n = self.count;
-        let mut a = DMatrix::<f64>::zeros(n, n);
-        let mut rhs = DVector::<f64>::zeros(n);
+        let mut a: LowerBand = vec![[0.0; band::HALF_BANDWIDTH + 1]; n];
+        let mut rhs = vec![0.0; n];
         for &(t, y, s) in obs {
             let (i, w) = self.weights(t);
             let wt = 1.0 / (s * s).max(1e-12);
             for p in 0..4 {
                 rhs[i + p] += wt * w[p] * y;
-                for q in 0..4 {
-                    a[(i + p, i + q)] += wt * w[p] * w[q];
+                for q in 0..=p {
+                    a[i + p][p - q] += wt * w[p] * w[q];
                 }
             }
         }
+        let d = [1.0, -2.0, 1.0];
         for k in 0..n - 2 {
-            let d = [1.0, -2.0, 1.0];
             for p in 0..3 {
-                for q in 0..3 {
-                    a[(k + p, k + q)] += smoothing * d[p] * d[q];
+                for q in 0..=p {
+                    a[k + p][p - q] += smoothing * d[p] * d[q];
                 }
             }
         }
-        let chol = a.cholesky()?;
-        let coef = chol.solve(&rhs);
+        let chol = BandCholesky::factor(a)?;
+        let coef = DVector::from_vec(chol.solve(&rhs));
         let chi2: f64 = obs
             .iter()
             .map(|&(t, y, s)| {
