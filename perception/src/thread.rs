@@ -566,14 +566,12 @@ fn trace_in(
         let Observed {
             path,
             t,
-            total,
-            seen_share,
             uv,
             disp,
             ends,
-            touches,
+            ..
         } = o;
-        let (total, seen_share, touches) = (*total, *seen_share, *touches);
+        let (total, seen_share, touches) = (o.total, o.seen_share, o.touches);
         let k_count = ((total / params.knot_px).ceil() as usize + 3).clamp(6, 80);
         let basis = Basis {
             count: k_count,

@@ -27,10 +27,11 @@ fn reference_input() -> RgbImage {
     }
 }
 
-/// PyTorch's logits for the reference input, written by train.py: three little-endian u32
-/// (channels, height, width), then the floats.
-fn reference_logits() -> (Vec<usize>, Vec<f32>) {
-    let bytes = std::fs::read(models().join("reference/logits.bin")).expect("logits");
+/// Logits written outside the project (`reference/logits.bin`: PyTorch's for the reference
+/// input, by train.py; `reference/shrunk_logits.bin`: by shrunk_reference.py): three
+/// little-endian u32 (channels, height, width), then the floats.
+fn reference_logits(file: &str) -> (Vec<usize>, Vec<f32>) {
+    let bytes = std::fs::read(models().join("reference").join(file)).expect("logits");
     let dims: Vec<usize> = bytes[..12]
         .chunks_exact(4)
         .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize)
@@ -46,7 +47,7 @@ fn reference_logits() -> (Vec<usize>, Vec<f32>) {
 fn the_committed_model_gives_pytorchs_logits_on_the_reference_input() {
     let s = committed();
     let img = reference_input();
-    let (dims, want) = reference_logits();
+    let (dims, want) = reference_logits("logits.bin");
     assert_eq!(dims, vec![2, img.height as usize, img.width as usize]);
     let [needle, thread] = s
         .logits(&img, Rect::full(img.width, img.height))
@@ -71,6 +72,51 @@ fn the_committed_model_gives_pytorchs_logits_on_the_reference_input() {
     assert_eq!(m.thread, thread_want);
     let needle_want = want[..n].iter().filter(|&&v| v > 0.0).count();
     assert!(m.needle_count() <= needle_want);
+}
+
+/// The image `shrunk_reference.py` draws (its `pattern`).
+fn shrunk_pattern(w: u32, h: u32) -> RgbImage {
+    let mut data = Vec::with_capacity((w * h * 3) as usize);
+    for y in 0..u64::from(h) {
+        for x in 0..u64::from(w) {
+            data.extend([
+                ((37 * x + 11 * y) % 251) as u8,
+                ((17 * x + 29 * y) % 241) as u8,
+                ((x * y + 3 * x) % 239) as u8,
+            ]);
+        }
+    }
+    RgbImage {
+        width: w,
+        height: h,
+        data,
+    }
+}
+
+/// A region wider than the model's side: shrunk as train.py shrinks its crops (PIL's box
+/// filter) and the logits brought back as PyTorch's bilinear interpolation does, checked
+/// against ONNX Runtime run from Python on the same image (every third row and column).
+#[test]
+fn a_shrunk_region_gives_the_logits_onnx_runtime_gives_from_python() {
+    let s = committed();
+    assert_eq!(s.max_side, 256, "the reference was made at a side of 256");
+    let img = shrunk_pattern(300, 41);
+    let (dims, want) = reference_logits("shrunk_logits.bin");
+    assert_eq!(dims, vec![2, 14, 100]);
+    let [needle, thread] = s
+        .logits(&img, Rect::full(img.width, img.height))
+        .expect("logits");
+    let mut worst = 0.0f32;
+    for (c, plane) in [needle, thread].iter().enumerate() {
+        for (k, &w) in want[c * 1400..(c + 1) * 1400].iter().enumerate() {
+            let (y, x) = (3 * (k / 100), 3 * (k % 100));
+            worst = worst.max((plane[y * 300 + x] - w).abs());
+        }
+    }
+    assert!(
+        worst < 1e-3,
+        "largest difference from the reference's logits: {worst}"
+    );
 }
 
 #[test]
