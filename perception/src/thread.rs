@@ -37,7 +37,7 @@
 //!    thread pixel in the region need be this thread (a stitch's open loop).
 //!
 //! Hand-written (no crate traces thin curves in stereo): the path search is A* on a pixel
-//! grid, the splines a small dense least-squares solve with nalgebra.
+//! grid, the splines a penalised least-squares solve in band storage (`crate::band`).
 
 use crate::PerceptionError;
 use crate::band::{self, BandCholesky, LowerBand};
