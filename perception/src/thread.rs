@@ -336,8 +336,10 @@ fn trace_in(
                     })
                     .sum()
             };
-            // Which way the thread leaves the start: where the cheapest path goes.
-            let mut cheapest = grid.path(from, Some(cell(s[0], s[1])));
+            // Which way the thread leaves the start: where the cheapest path goes. Its
+            // search from the swage is kept for the bridges below, which also start there.
+            let from_swage = grid.search(from, Some(cell(s[0], s[1])));
+            let mut cheapest = from_swage.path_to(None).unwrap_or_else(|| vec![from]);
             cheapest.reverse();
             let first = block_path(&cheapest);
             let from_start = local(s[0], s[1]);
@@ -361,7 +363,9 @@ fn trace_in(
                     let mut cells = match &bridged {
                         Some((t, c)) if *t == to => c.clone(),
                         _ => {
-                            let c = grid.path(from, Some(to));
+                            let c = from_swage
+                                .path_to(Some(to))
+                                .unwrap_or_else(|| grid.path(from, Some(to)));
                             bridged = Some((to, c.clone()));
                             c
                         }
@@ -929,6 +933,35 @@ impl Buckets {
     }
 }
 
+/// A finished path search from one cell (`Grid::search`).
+struct Search {
+    from: usize,
+    /// Where it was going: its target, or the thread farthest along from `from`.
+    end: usize,
+    parent: Vec<u32>,
+    /// The cells whose cost it made final; every one's way back to `from` is a cheapest path.
+    settled: Vec<bool>,
+}
+
+impl Search {
+    /// The cheapest path from the search's start to `to` (its own end without one), cells
+    /// from the start; none if the search did not settle it.
+    fn path_to(&self, to: Option<usize>) -> Option<Vec<usize>> {
+        let end = to.unwrap_or(self.end);
+        if !self.settled[end] {
+            return None;
+        }
+        let mut out = vec![end];
+        let mut i = end;
+        while i != self.from {
+            i = self.parent[i] as usize;
+            out.push(i);
+        }
+        out.reverse();
+        Some(out)
+    }
+}
+
 struct Grid<'a> {
     w: usize,
     h: usize,
@@ -971,6 +1004,14 @@ impl Grid<'_> {
     /// heuristic), cells from `from`; without `to`, the path to the thread farthest from
     /// `from` along the thread (steps off it allowed only across gaps of a few pixels).
     fn path(&self, from: usize, to: Option<usize>) -> Vec<usize> {
+        self.search(from, to)
+            .path_to(None)
+            .unwrap_or_else(|| vec![from])
+    }
+
+    /// The search behind `path`, kept: the paths to other cells it settled on the way come
+    /// from it for nothing.
+    fn search(&self, from: usize, to: Option<usize>) -> Search {
         let n = self.w * self.h;
         let (w, hh) = (self.w as i64, self.h as i64);
         let mut g = vec![u32::MAX; n];
@@ -1001,6 +1042,7 @@ impl Grid<'_> {
             (-1, 1, true),
             (1, 1, true),
         ];
+        let mut settled = vec![false; n];
         g[from] = 0;
         heap.push(
             h((from % self.w) as i64, (from / self.w) as i64),
@@ -1013,6 +1055,8 @@ impl Grid<'_> {
             if f > g[i].saturating_add(h(x, y)) {
                 continue;
             }
+            // Popped with its own f: its cost is final (the heuristic is consistent).
+            settled[i] = true;
             if Some(i) == to {
                 break;
             }
@@ -1036,18 +1080,12 @@ impl Grid<'_> {
                 }
             }
         }
-        let end = to.unwrap_or(farthest);
-        if g[end] == u32::MAX {
-            return vec![from];
+        Search {
+            from,
+            end: to.unwrap_or(farthest),
+            parent,
+            settled,
         }
-        let mut out = vec![end];
-        let mut i = end;
-        while i != from {
-            i = parent[i] as usize;
-            out.push(i);
-        }
-        out.reverse();
-        out
     }
 
     /// Cells within `r` (Chebyshev) of thread or of `seed`.
@@ -1715,6 +1753,49 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// A path read from a search made for another target, to any cell that search settled,
+    /// costs what a search of its own finds: it is a cheapest path too.
+    #[test]
+    fn a_settled_cells_path_from_another_search_is_a_cheapest_path() {
+        use rand::Rng;
+        use rand_chacha::ChaCha8Rng;
+        use rand_chacha::rand_core::SeedableRng;
+        let mut reused = 0;
+        for seed in 0..60u64 {
+            let mut rng = ChaCha8Rng::seed_from_u64(seed);
+            let (w, h) = (rng.random_range(5..40usize), rng.random_range(5..40usize));
+            let mask: Vec<u8> = (0..w * h).map(|_| u8::from(rng.random_bool(0.4))).collect();
+            let grid = Grid {
+                w,
+                h,
+                mask: &mask,
+                gap: rng.random_range(1..10u32),
+            };
+            let cost = |path: &[usize]| -> u32 {
+                path.windows(2)
+                    .map(|q| {
+                        let (dx, dy) =
+                            ((q[0] % w).abs_diff(q[1] % w), (q[0] / w).abs_diff(q[1] / w));
+                        assert!(dx <= 1 && dy <= 1 && dx + dy > 0, "not a step: {q:?}");
+                        grid.step(q[1], dx + dy == 2)
+                    })
+                    .sum()
+            };
+            let from = rng.random_range(0..w * h);
+            let search = grid.search(from, Some(rng.random_range(0..w * h)));
+            for to in 0..w * h {
+                let Some(p) = search.path_to(Some(to)) else {
+                    continue;
+                };
+                reused += 1;
+                let own = grid.path(from, Some(to));
+                assert_eq!((p[0], p[p.len() - 1]), (from, to));
+                assert_eq!(cost(&p), cost(&own), "seed {seed}, {from} → {to}");
+            }
+        }
+        assert!(reused > 1000, "{reused}");
     }
 
     #[test]
