@@ -338,7 +338,7 @@ fn trace_in(
             };
             // Which way the thread leaves the start: where the cheapest path goes. Its
             // search from the swage is kept for the bridges below, which also start there.
-            let from_swage = grid.search(from, Some(cell(s[0], s[1])));
+            let mut from_swage = grid.search(from, Some(cell(s[0], s[1])));
             let mut cheapest = from_swage.path_to(None).unwrap_or_else(|| vec![from]);
             cheapest.reverse();
             let first = block_path(&cheapest);
@@ -363,9 +363,7 @@ fn trace_in(
                     let mut cells = match &bridged {
                         Some((t, c)) if *t == to => c.clone(),
                         _ => {
-                            let c = from_swage
-                                .path_to(Some(to))
-                                .unwrap_or_else(|| grid.path(from, Some(to)));
+                            let c = grid.path_via(&mut from_swage, to);
                             bridged = Some((to, c.clone()));
                             c
                         }
@@ -933,11 +931,40 @@ impl Buckets {
     }
 }
 
-/// A finished path search from one cell (`Grid::search`).
+/// An A* search's open set: pops the least f, and among equal f the least cell.
+trait Open {
+    fn push(&mut self, f: u32, cell: u32);
+    fn pop(&mut self) -> Option<(u32, u32)>;
+}
+
+impl Open for Buckets {
+    fn push(&mut self, f: u32, cell: u32) {
+        Buckets::push(self, f, cell);
+    }
+
+    fn pop(&mut self) -> Option<(u32, u32)> {
+        Buckets::pop(self)
+    }
+}
+
+/// For a search carried on towards another end, whose open f's span more than the buckets'.
+impl Open for std::collections::BinaryHeap<std::cmp::Reverse<(u32, u32)>> {
+    fn push(&mut self, f: u32, cell: u32) {
+        std::collections::BinaryHeap::push(self, std::cmp::Reverse((f, cell)));
+    }
+
+    fn pop(&mut self) -> Option<(u32, u32)> {
+        std::collections::BinaryHeap::pop(self).map(|std::cmp::Reverse(k)| k)
+    }
+}
+
+/// A path search from one cell (`Grid::search`), kept to be read or carried on.
 struct Search {
     from: usize,
     /// Where it was going: its target, or the thread farthest along from `from`.
     end: usize,
+    /// Each cell's cost from `from` so far (final where settled).
+    g: Vec<u32>,
     parent: Vec<u32>,
     /// The cells whose cost it made final; every one's way back to `from` is a cheapest path.
     settled: Vec<bool>,
@@ -1013,25 +1040,71 @@ impl Grid<'_> {
     /// from it for nothing.
     fn search(&self, from: usize, to: Option<usize>) -> Search {
         let n = self.w * self.h;
-        let (w, hh) = (self.w as i64, self.h as i64);
-        let mut g = vec![u32::MAX; n];
-        let mut parent = vec![u32::MAX; n];
+        let mut s = Search {
+            from,
+            end: from,
+            g: vec![u32::MAX; n],
+            parent: vec![u32::MAX; n],
+            settled: vec![false; n],
+        };
         // A step costs at most 7·gap and moves the heuristic by at most 7: a new entry's f is
         // within that of the one popped.
-        let mut heap = Buckets::new(7 * self.gap as usize + 8);
-        let target = to.map(|t| ((t % self.w) as i64, (t / self.w) as i64));
-        let h = |x: i64, y: i64| -> u32 {
-            target.map_or(0, |(tx, ty)| {
-                let (dx, dy) = (x.abs_diff(tx) as u32, y.abs_diff(ty) as u32);
-                5 * dx.max(dy) + 2 * dx.min(dy)
-            })
-        };
+        let mut open = Buckets::new(7 * self.gap as usize + 8);
         // Without an end: off the thread only within a few pixels of it (or of the swage).
         let near = if to.is_none() {
             Some(self.near_thread(4, from))
         } else {
             None
         };
+        s.g[from] = 0;
+        open.push(self.heuristic(to)(from), from as u32);
+        let farthest = self.expand(&mut s, &mut open, to, near.as_deref());
+        s.end = to.unwrap_or(farthest);
+        s
+    }
+
+    /// The cheapest path from `s`'s start to `to`: read from `s` where it settled `to`,
+    /// else `s` carried on until it does (its open set ordered again by the distance to
+    /// `to`; what it settled stays settled). Cells from the start.
+    fn path_via(&self, s: &mut Search, to: usize) -> Vec<usize> {
+        if !s.settled[to] {
+            let h = self.heuristic(Some(to));
+            let mut open = std::collections::BinaryHeap::new();
+            for (i, &g) in s.g.iter().enumerate() {
+                if g != u32::MAX && !s.settled[i] {
+                    open.push(std::cmp::Reverse((g + h(i), i as u32)));
+                }
+            }
+            self.expand(s, &mut open, Some(to), None);
+        }
+        s.path_to(Some(to)).unwrap_or_else(|| vec![s.from])
+    }
+
+    /// The A* heuristic towards `to` (none without): the octile distance in on-thread
+    /// steps, which no path beats (consistent).
+    fn heuristic(&self, to: Option<usize>) -> impl Fn(usize) -> u32 + use<> {
+        let w = self.w;
+        let target = to.map(|t| (t % w, t / w));
+        move |i: usize| {
+            target.map_or(0, |(tx, ty)| {
+                let (dx, dy) = ((i % w).abs_diff(tx) as u32, (i / w).abs_diff(ty) as u32);
+                5 * dx.max(dy) + 2 * dx.min(dy)
+            })
+        }
+    }
+
+    /// A* from `s`'s state and `open` until `to` is settled or nothing is left open (`near`:
+    /// the only cells it may enter); the thread cell settled farthest from the start along
+    /// the way, which a search without an end goes to.
+    fn expand(
+        &self,
+        s: &mut Search,
+        open: &mut impl Open,
+        to: Option<usize>,
+        near: Option<&[bool]>,
+    ) -> usize {
+        let (w, hh) = (self.w as i64, self.h as i64);
+        let h = self.heuristic(to);
         const D: [(i64, i64, bool); 8] = [
             (-1, 0, false),
             (1, 0, false),
@@ -1042,50 +1115,41 @@ impl Grid<'_> {
             (-1, 1, true),
             (1, 1, true),
         ];
-        let mut settled = vec![false; n];
-        g[from] = 0;
-        heap.push(
-            h((from % self.w) as i64, (from / self.w) as i64),
-            from as u32,
-        );
-        let mut farthest = from;
-        while let Some((f, i)) = heap.pop() {
+        let mut farthest = s.from;
+        while let Some((f, i)) = open.pop() {
             let i = i as usize;
-            let (x, y) = ((i % self.w) as i64, (i / self.w) as i64);
-            if f > g[i].saturating_add(h(x, y)) {
+            if f > s.g[i].saturating_add(h(i)) {
                 continue;
             }
             // Popped with its own f: its cost is final (the heuristic is consistent).
-            settled[i] = true;
-            if Some(i) == to {
-                break;
-            }
-            if to.is_none() && self.mask[i] != 0 && g[i] > g[farthest] {
+            s.settled[i] = true;
+            if to.is_none() && self.mask[i] != 0 && s.g[i] > s.g[farthest] {
                 farthest = i;
             }
+            let (x, y) = ((i % self.w) as i64, (i / self.w) as i64);
             for &(dx, dy, diag) in &D {
                 let (nx, ny) = (x + dx, y + dy);
                 if nx < 0 || ny < 0 || nx >= w || ny >= hh {
                     continue;
                 }
                 let j = (ny * w + nx) as usize;
-                if near.as_ref().is_some_and(|m| !m[j]) {
+                if near.is_some_and(|m| !m[j]) {
                     continue;
                 }
-                let c = g[i] + self.step(j, diag);
-                if c < g[j] {
-                    g[j] = c;
-                    parent[j] = i as u32;
-                    heap.push(c + h(nx, ny), j as u32);
+                let c = s.g[i] + self.step(j, diag);
+                if c < s.g[j] {
+                    s.g[j] = c;
+                    s.parent[j] = i as u32;
+                    open.push(c + h(j), j as u32);
                 }
             }
+            // (Its neighbours seen first: every settled cell's are, which a search carried on
+            // needs.)
+            if Some(i) == to {
+                break;
+            }
         }
-        Search {
-            from,
-            end: to.unwrap_or(farthest),
-            parent,
-            settled,
-        }
+        farthest
     }
 
     /// Cells within `r` (Chebyshev) of thread or of `seed`.
@@ -1756,7 +1820,8 @@ mod tests {
     }
 
     /// A path read from a search made for another target, to any cell that search settled,
-    /// costs what a search of its own finds: it is a cheapest path too.
+    /// costs what a search of its own finds: it is a cheapest path too; and so does one
+    /// from a search carried on to new ends, one after another.
     #[test]
     fn a_settled_cells_path_from_another_search_is_a_cheapest_path() {
         use rand::Rng;
@@ -1793,6 +1858,18 @@ mod tests {
                 let own = grid.path(from, Some(to));
                 assert_eq!((p[0], p[p.len() - 1]), (from, to));
                 assert_eq!(cost(&p), cost(&own), "seed {seed}, {from} → {to}");
+            }
+            let mut carried = search;
+            for _ in 0..5 {
+                let to = rng.random_range(0..w * h);
+                let p = grid.path_via(&mut carried, to);
+                let own = grid.path(from, Some(to));
+                assert_eq!((p[0], p[p.len() - 1]), (from, to));
+                assert_eq!(
+                    cost(&p),
+                    cost(&own),
+                    "seed {seed}, {from} → {to}, carried on"
+                );
             }
         }
         assert!(reused > 1000, "{reused}");
