@@ -590,17 +590,32 @@ fn trace_in(
             o.extend(ends.iter().map(|(t, e, s)| (*t, e[axis], s[axis])));
             o
         };
+        // Each axis's observations with their basis weights and the data's part of the
+        // normal equations, once for every smoothing tried.
+        let prepared: Vec<Prepared> = (0..3).map(|axis| basis.prepare(axis_obs(axis))).collect();
         let fit_all = |smoothing: f64| -> Option<[Fit; 3]> {
             let mut fits = Vec::with_capacity(3);
-            for axis in 0..3 {
-                let mut obs = axis_obs(axis);
-                let mut f = basis.fit(&obs, smoothing)?;
+            for (axis, p) in prepared.iter().enumerate() {
+                let mut f = basis.fit_prepared(p, smoothing)?;
                 // Once: drop observations far off the first fit (a wrong match, a speck).
                 let floor = if axis == 2 { 1.5 } else { 2.0 };
-                let before = obs.len();
-                obs.retain(|&(t, y, s)| (basis.eval(&f.coef, t) - y).abs() <= (4.0 * s).max(floor));
-                if obs.len() < before {
-                    f = basis.fit(&obs, smoothing)?;
+                let keep: Vec<bool> = p
+                    .weights
+                    .iter()
+                    .zip(&p.obs)
+                    .map(|(&(i, w), &(_, y, s))| {
+                        (dot(&f.coef, i, &w) - y).abs() <= (4.0 * s).max(floor)
+                    })
+                    .collect();
+                if keep.contains(&false) {
+                    let kept: Vec<(f64, f64, f64)> = p
+                        .obs
+                        .iter()
+                        .zip(&keep)
+                        .filter(|(_, k)| **k)
+                        .map(|(o, _)| *o)
+                        .collect();
+                    f = basis.fit(&kept, smoothing)?;
                 }
                 fits.push(f);
             }
@@ -1675,6 +1690,23 @@ impl View<'_> {
     }
 }
 
+/// A spline's value from the four basis functions non-zero at a point: the first's index
+/// and their values.
+fn dot(coef: &DVector<f64>, i: usize, w: &[f64; 4]) -> f64 {
+    (0..4).map(|k| w[k] * coef[i + k]).sum()
+}
+
+/// Observations ready for fits at several smoothings (`Basis::prepare`).
+struct Prepared {
+    /// The data's part of the normal matrix (band, lower) and right-hand side.
+    a: LowerBand,
+    rhs: Vec<f64>,
+    /// Each observation's first basis function and the four values there.
+    weights: Vec<(usize, [f64; 4])>,
+    /// The observations, `(t, value, σ)`.
+    obs: Vec<(f64, f64, f64)>,
+}
+
 /// A uniform cubic B-spline basis of `count` functions over `[0, span]`.
 struct Basis {
     count: usize,
@@ -1730,16 +1762,17 @@ impl Basis {
 
     fn eval(&self, coef: &DVector<f64>, t: f64) -> f64 {
         let (i, w) = self.weights(t);
-        (0..4).map(|k| w[k] * coef[i + k]).sum()
+        dot(coef, i, &w)
     }
 
-    /// Penalised least squares: `(t, value, sigma)` observations, `smoothing` on the
-    /// coefficients' second differences.
-    fn fit(&self, obs: &[(f64, f64, f64)], smoothing: f64) -> Option<Fit> {
+    /// `(t, value, sigma)` observations' weights and the data's part of the normal
+    /// equations.
+    fn prepare(&self, obs: Vec<(f64, f64, f64)>) -> Prepared {
         let n = self.count;
         let mut a: LowerBand = vec![[0.0; band::HALF_BANDWIDTH + 1]; n];
         let mut rhs = vec![0.0; n];
-        for &(t, y, s) in obs {
+        let mut weights = Vec::with_capacity(obs.len());
+        for &(t, y, s) in &obs {
             let (i, w) = self.weights(t);
             let wt = 1.0 / (s * s).max(1e-12);
             for p in 0..4 {
@@ -1748,7 +1781,27 @@ impl Basis {
                     a[i + p][p - q] += wt * w[p] * w[q];
                 }
             }
+            weights.push((i, w));
         }
+        Prepared {
+            a,
+            rhs,
+            weights,
+            obs,
+        }
+    }
+
+    /// Penalised least squares: `(t, value, sigma)` observations, `smoothing` on the
+    /// coefficients' second differences.
+    fn fit(&self, obs: &[(f64, f64, f64)], smoothing: f64) -> Option<Fit> {
+        self.fit_prepared(&self.prepare(obs.to_vec()), smoothing)
+    }
+
+    /// `fit` from prepared observations.
+    fn fit_prepared(&self, prepared: &Prepared, smoothing: f64) -> Option<Fit> {
+        let n = self.count;
+        let mut a = prepared.a.clone();
+        let rhs = &prepared.rhs;
         let d = [1.0, -2.0, 1.0];
         for k in 0..n - 2 {
             for p in 0..3 {
@@ -1758,17 +1811,19 @@ impl Basis {
             }
         }
         let chol = BandCholesky::factor(a)?;
-        let coef = DVector::from_vec(chol.solve(&rhs));
-        let chi2: f64 = obs
+        let coef = DVector::from_vec(chol.solve(rhs));
+        let chi2: f64 = prepared
+            .weights
             .iter()
-            .map(|&(t, y, s)| {
-                let r = (self.eval(&coef, t) - y) / s.max(1e-12);
+            .zip(&prepared.obs)
+            .map(|(&(i, w), &(_, y, s))| {
+                let r = (dot(&coef, i, &w) - y) / s.max(1e-12);
                 r * r
             })
             .sum();
         // Residuals larger than the stated uncertainties say the uncertainties were too
         // small: scale the covariance by the reduced χ² when it exceeds 1.
-        let dof = obs.len().saturating_sub(n / 2).max(1) as f64;
+        let dof = prepared.obs.len().saturating_sub(n / 2).max(1) as f64;
         Some(Fit {
             coef,
             chol,
