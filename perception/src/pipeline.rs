@@ -1698,9 +1698,10 @@ impl PoseError {
 }
 
 /// The segmenter's places for the needle, and after them the likeliest joined with each
-/// other place beside it (a gap no more than half the larger's longer side): the thread
-/// lying along the needle can cut its mask in two, each piece ranked a place of its own with
-/// too short an arc to fit. The joined places are tried only after the pieces.
+/// other place beside it (a gap no more than twice the larger's longer side): the thread
+/// lying along the needle, or a jaw's shaft across it, can cut its mask in two, each piece
+/// ranked a place of its own with too short an arc to fit. The joined places are tried only
+/// after the pieces.
 fn joined(mut places: Vec<Rect>) -> Vec<Rect> {
     let Some(&a) = places.first() else {
         return places;
@@ -1713,7 +1714,7 @@ fn joined(mut places: Vec<Rect>) -> Vec<Rect> {
         .iter()
         .filter(|b| {
             let g = gap(a.x0, a.x1, b.x0, b.x1).max(gap(a.y0, a.y1, b.y0, b.y1));
-            g > 0 && 2 * g <= side(&a).max(side(b))
+            g > 0 && g <= 2 * side(&a).max(side(b))
         })
         .map(|b| Rect {
             x0: a.x0.min(b.x0),
@@ -1744,6 +1745,15 @@ mod tests {
         assert_eq!(
             joined(vec![a, b, far]),
             vec![a, b, far, rect(243, 396, 552, 549)]
+        );
+        // A needle cut by a jaw's shaft (as in seed 2's independent pairs 83, 115 and 182):
+        // pieces farther apart than the thread leaves them, up to twice the larger's side.
+        let tip = rect(600, 300, 660, 340);
+        let swage = rect(640, 440, 700, 470);
+        let beyond = rect(840, 300, 880, 340);
+        assert_eq!(
+            joined(vec![tip, swage, beyond]),
+            vec![tip, swage, beyond, rect(600, 300, 700, 470)]
         );
         // Overlapping places are one place drawn twice, not pieces; nothing is added.
         let c = rect(300, 500, 420, 600);
