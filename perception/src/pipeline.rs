@@ -1699,7 +1699,7 @@ impl PoseError {
 
 /// The segmenter's places for the needle, and after them the likeliest joined with each
 /// other place beside it (a gap no more than twice the larger's longer side): the thread
-/// lying along the needle, or a jaw's shaft across it, can cut its mask in two, each piece
+/// lying along the needle, or a jaw across it, can cut its mask in two, each piece
 /// ranked a place of its own with too short an arc to fit. The joined places are tried only
 /// after the pieces.
 fn joined(mut places: Vec<Rect>) -> Vec<Rect> {
@@ -1746,8 +1746,8 @@ mod tests {
             joined(vec![a, b, far]),
             vec![a, b, far, rect(243, 396, 552, 549)]
         );
-        // A needle cut by a jaw's shaft (as in seed 2's independent pairs 83, 115 and 182):
-        // pieces farther apart than the thread leaves them, up to twice the larger's side.
+        // A needle cut by a jaw (as in seed 2's independent pairs 83, 115 and 182): pieces
+        // farther apart than half the larger's side, up to twice that side.
         let tip = rect(600, 300, 660, 340);
         let swage = rect(640, 440, 700, 470);
         let beyond = rect(840, 300, 880, 340);
