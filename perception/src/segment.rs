@@ -357,7 +357,15 @@ impl ColorSegmenter {
             let joins = if shaped(g) {
                 gap(g, &b) <= far
             } else {
-                small(g) && gap(g, &best.bbox) <= small_reach
+                // Or a group touching it, bent, nearly as thin as wire: a piece of the
+                // needle thickened by what lies on it (a jaw's steel fingers closed on the
+                // wire), fuller than wire alone, not a blob of glare.
+                (small(g) && gap(g, &best.bbox) <= small_reach)
+                    || (!std::ptr::eq(g, best)
+                        && gap(g, &best.bbox) == 0
+                        && g.extent() >= MIN_SHAPED_CELLS
+                        && g.fill() <= TOUCHING_FILL_SCALE * self.max_fill
+                        && bent(g))
             };
             if g.count >= 2 && joins {
                 b = [
@@ -527,6 +535,9 @@ const MAX_PIECES: usize = 3;
 
 /// Groups smaller than this many cells across have no shape to judge.
 const MIN_SHAPED_CELLS: usize = 8;
+/// A group touching the needle's likeliest group joins it when it is bent and fills at most
+/// this many times [`ColorSegmenter::max_fill`] (a piece of wire under a jaw's fingers).
+const TOUCHING_FILL_SCALE: f32 = 1.5;
 
 /// A connected group of grid cells.
 #[derive(Clone, Copy, Debug, PartialEq)]
