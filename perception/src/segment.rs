@@ -357,9 +357,10 @@ impl ColorSegmenter {
             let joins = if shaped(g) {
                 gap(g, &b) <= far
             } else {
-                // Or a group touching it, bent, nearly as thin as wire: a piece of the
-                // needle thickened by what lies on it (a jaw's steel fingers closed on the
-                // wire), fuller than wire alone, not a blob of glare.
+                // A small piece within reach; or a group touching it, bent and nearly as
+                // thin as wire: a piece of the needle thickened by what lies on it (a jaw's
+                // steel fingers closed on the wire), fuller than wire alone, not a blob of
+                // glare.
                 (small(g) && gap(g, &best.bbox) <= small_reach)
                     || (!std::ptr::eq(g, best)
                         && gap(g, &best.bbox) == 0
