@@ -86,9 +86,8 @@ fn needles_beside_glare_specks_or_cut_in_two_by_the_thread_are_found() {
 
 /// Pairs of the independent set (seed 2) whose needle a jaw (its fingers, or its fingers and
 /// the thread along the wire) cuts in two, the pieces farther apart than half the larger's
-/// side: each piece alone was refused
-/// (`bad_fit`, too short an arc) until pieces up to twice the larger's side apart were
-/// joined. Full frame, no hint: each is found within a millimetre and 5°.
+/// side: each piece alone was refused (`bad_fit`, too short an arc) until pieces up to
+/// twice the larger's side apart were joined. Full frame, no hint: each is found within a millimetre and 5°.
 #[test]
 fn needles_cut_in_two_by_a_jaw_are_found() {
     found_full_frame(&[83, 115, 182], true);

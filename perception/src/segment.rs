@@ -347,6 +347,16 @@ impl ColorSegmenter {
                 && !std::ptr::eq(g, best)
                 && gap(g, &best.bbox) <= far
         };
+        // A group touching it, bent and nearly as thin as wire: a piece of the needle
+        // thickened by what lies on it (a jaw's steel fingers closed on the wire), fuller
+        // than wire alone, not a blob of glare.
+        let thickened = |g: &Group| {
+            !std::ptr::eq(g, best)
+                && gap(g, &best.bbox) == 0
+                && g.extent() >= MIN_SHAPED_CELLS
+                && g.fill() <= TOUCHING_FILL_SCALE * self.max_fill
+                && bent(g)
+        };
         let small_reach = if groups.iter().filter(|g| small(g)).count() <= MAX_PIECES {
             far
         } else {
@@ -357,16 +367,7 @@ impl ColorSegmenter {
             let joins = if shaped(g) {
                 gap(g, &b) <= far
             } else {
-                // A small piece within reach; or a group touching it, bent and nearly as
-                // thin as wire: a piece of the needle thickened by what lies on it (a jaw's
-                // steel fingers closed on the wire), fuller than wire alone, not a blob of
-                // glare.
-                (small(g) && gap(g, &best.bbox) <= small_reach)
-                    || (!std::ptr::eq(g, best)
-                        && gap(g, &best.bbox) == 0
-                        && g.extent() >= MIN_SHAPED_CELLS
-                        && g.fill() <= TOUCHING_FILL_SCALE * self.max_fill
-                        && bent(g))
+                (small(g) && gap(g, &best.bbox) <= small_reach) || thickened(g)
             };
             if g.count >= 2 && joins {
                 b = [
