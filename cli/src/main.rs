@@ -120,8 +120,9 @@ enum Command {
         #[arg(long, value_enum, default_value_t = PerceptionKind::Model)]
         perception: PerceptionKind,
         /// With --perception pipeline: the pipeline's segmenter, classical (colour rules),
-        /// onnx (the built-in U-Net; a stitch built with --features onnx) or onnx:FILE (a
-        /// model keeping the contract in docs/perception.md).
+        /// onnx (the built-in U-Net; a stitch built with --features onnx), onnx-fast (the
+        /// built-in U-Net from half resolution) or onnx:FILE (a model keeping the contract in
+        /// docs/perception.md).
         #[arg(long, default_value = "classical")]
         segmenter: segmenter::SegmenterChoice,
         /// The mock's scene, models and faults (TOML; see docs/mock-dvrk.md). Without it,

@@ -198,7 +198,7 @@ pub enum BenchCommand {
         /// Matchers to measure (the default pipeline uses sgm).
         #[arg(long, value_enum, value_delimiter = ',', default_values_t = [MatcherKind::Sgm, MatcherKind::MaskRow])]
         matchers: Vec<MatcherKind>,
-        /// The pipeline's segmenter: classical, onnx or onnx:FILE (as `perceive needle`).
+        /// The pipeline's segmenter: classical, onnx, onnx-fast or onnx:FILE (as `perceive needle`).
         #[arg(long, default_value = "classical")]
         segmenter: SegmenterChoice,
     },
@@ -215,7 +215,7 @@ pub enum BenchCommand {
         /// Seed of both sets.
         #[arg(long, default_value_t = 2)]
         seed: u64,
-        /// Segmenters to compare: classical, onnx, onnx:FILE.
+        /// Segmenters to compare: classical, onnx, onnx-fast, onnx:FILE.
         #[arg(long, value_delimiter = ',', default_values_t = [SegmenterChoice::Classical])]
         segmenters: Vec<SegmenterChoice>,
         /// Print JSON instead of a table.
@@ -286,8 +286,8 @@ pub struct PipelineOptions {
     #[arg(long, value_enum, default_value_t = MatcherKind::Sgm)]
     matcher: MatcherKind,
     /// The segmenter: classical (colour rules), onnx (the built-in U-Net; a stitch built
-    /// with --features onnx) or onnx:FILE (a model keeping the contract in
-    /// docs/perception.md).
+    /// with --features onnx), onnx-fast (the built-in U-Net from half resolution, about half
+    /// the time) or onnx:FILE (a model keeping the contract in docs/perception.md).
     #[arg(long, default_value = "classical")]
     segmenter: SegmenterChoice,
     /// Needle radius, mm.

@@ -39,7 +39,7 @@ pub struct ThreadArgs {
     /// takes in thread the view shows apart from its path (a loop whose neck is hidden).
     #[arg(long, value_parser = parse_length)]
     length_m: Option<f64>,
-    /// The segmenter whose thread mask is traced: classical, onnx or onnx:FILE.
+    /// The segmenter whose thread mask is traced: classical, onnx, onnx-fast or onnx:FILE.
     #[arg(long, default_value = "classical")]
     segmenter: SegmenterChoice,
 }
@@ -62,7 +62,7 @@ pub struct BenchThreadArgs {
     /// Keep the independent set's rendered pairs here and reuse them (as `bench perception`).
     #[arg(long)]
     render_cache: Option<PathBuf>,
-    /// The segmenter: classical, onnx or onnx:FILE.
+    /// The segmenter: classical, onnx, onnx-fast or onnx:FILE.
     #[arg(long, default_value = "classical")]
     segmenter: SegmenterChoice,
     /// Write each pair's result as JSON Lines into this file.

@@ -1,4 +1,4 @@
-//! `--segmenter classical|onnx[:FILE]`: which segmenter the needle pipeline uses.
+//! `--segmenter classical|onnx|onnx-fast|onnx:FILE`: which segmenter the needle pipeline uses.
 
 use anyhow::Context;
 use std::path::PathBuf;
@@ -9,6 +9,10 @@ use stitch_perception::{ColorSegmenter, SharedSegmenter};
 /// The committed model (`perception/models/needle_thread_unet.onnx`), built into the binary.
 #[cfg(feature = "onnx")]
 const BUILT_IN: &[u8] = include_bytes!("../../perception/models/needle_thread_unet.onnx");
+/// The committed fast model (`perception/models/needle_thread_unet_fast.onnx`: from half
+/// resolution, about half the time), built into the binary.
+#[cfg(feature = "onnx")]
+const BUILT_IN_FAST: &[u8] = include_bytes!("../../perception/models/needle_thread_unet_fast.onnx");
 
 /// What `--segmenter` names.
 #[derive(Clone, Debug, PartialEq, Eq, Default)]
@@ -18,6 +22,8 @@ pub(crate) enum SegmenterChoice {
     Classical,
     /// A U-Net through ONNX Runtime: the built-in model, or one from a file.
     Onnx(Option<PathBuf>),
+    /// The built-in fast U-Net (from half resolution).
+    OnnxFast,
 }
 
 impl FromStr for SegmenterChoice {
@@ -26,10 +32,12 @@ impl FromStr for SegmenterChoice {
         match s {
             "classical" => Ok(Self::Classical),
             "onnx" => Ok(Self::Onnx(None)),
+            "onnx-fast" => Ok(Self::OnnxFast),
             _ => match s.strip_prefix("onnx:") {
                 Some(file) if !file.is_empty() => Ok(Self::Onnx(Some(PathBuf::from(file)))),
                 _ => Err(format!(
-                    "{s:?}: expected classical, onnx (the built-in model) or onnx:FILE"
+                    "{s:?}: expected classical, onnx (the built-in model), onnx-fast (the built-in \
+                     fast model) or onnx:FILE"
                 )),
             },
         }
@@ -41,6 +49,7 @@ impl std::fmt::Display for SegmenterChoice {
         match self {
             Self::Classical => write!(f, "classical"),
             Self::Onnx(None) => write!(f, "onnx"),
+            Self::OnnxFast => write!(f, "onnx-fast"),
             Self::Onnx(Some(p)) => write!(f, "onnx:{}", p.display()),
         }
     }
@@ -51,7 +60,8 @@ impl SegmenterChoice {
     pub(crate) fn load(&self) -> anyhow::Result<SharedSegmenter> {
         match self {
             Self::Classical => Ok(SharedSegmenter(Arc::new(ColorSegmenter::default()))),
-            Self::Onnx(file) => onnx(file.as_ref()),
+            Self::Onnx(file) => onnx(file.as_ref(), false),
+            Self::OnnxFast => onnx(None, true),
         }
     }
 
@@ -65,10 +75,15 @@ impl SegmenterChoice {
 }
 
 #[cfg(feature = "onnx")]
-fn onnx(file: Option<&PathBuf>) -> anyhow::Result<SharedSegmenter> {
+fn onnx(file: Option<&PathBuf>, fast: bool) -> anyhow::Result<SharedSegmenter> {
     use stitch_perception::onnx::OnnxSegmenter;
     let s = match file {
         Some(path) => OnnxSegmenter::from_file(path, 1),
+        None if fast => OnnxSegmenter::from_bytes(
+            BUILT_IN_FAST,
+            "the built-in needle_thread_unet_fast.onnx",
+            1,
+        ),
         None => OnnxSegmenter::from_bytes(BUILT_IN, "the built-in needle_thread_unet.onnx", 1),
     }
     .context("--segmenter")?;
@@ -76,7 +91,7 @@ fn onnx(file: Option<&PathBuf>) -> anyhow::Result<SharedSegmenter> {
 }
 
 #[cfg(not(feature = "onnx"))]
-fn onnx(_: Option<&PathBuf>) -> anyhow::Result<SharedSegmenter> {
+fn onnx(_: Option<&PathBuf>, _: bool) -> anyhow::Result<SharedSegmenter> {
     Err(anyhow::anyhow!(
         "--segmenter onnx: this stitch was built without ONNX Runtime; build it with \
          `cargo build --release --features onnx` and set ORT_DYLIB_PATH (docs/perception.md)"
@@ -90,11 +105,11 @@ mod tests {
 
     #[test]
     fn choices_parse_and_print_back() {
-        for s in ["classical", "onnx", "onnx:models/mine.onnx"] {
+        for s in ["classical", "onnx", "onnx-fast", "onnx:models/mine.onnx"] {
             let c: SegmenterChoice = s.parse().expect(s);
             assert_eq!(c.to_string(), s);
         }
-        for bad in ["", "onnx:", "unet", "ONNX"] {
+        for bad in ["", "onnx:", "unet", "ONNX", "onnx-slow"] {
             assert!(bad.parse::<SegmenterChoice>().is_err(), "{bad}");
         }
     }

@@ -545,25 +545,36 @@ mod onnx {
     use super::*;
 
     #[test]
-    fn the_built_in_model_finds_the_needle_in_a_rendered_pair() {
+    fn the_built_in_models_find_the_needle_in_a_rendered_pair() {
         let d = rendered("onnx-needle");
-        let out = stitch(&[
-            "perceive",
-            "needle",
-            s(&d.join("left.png")),
-            s(&d.join("right.png")),
-            "--calib",
-            s(&d.join("calib.toml")),
-            "--segmenter",
-            "onnx",
-        ]);
-        assert_eq!(out.status.code(), Some(0), "{}", text(&out.stderr));
-        let est: serde_json::Value = serde_json::from_slice(&out.stdout).expect("JSON");
         let truth: serde_json::Value =
             serde_json::from_slice(&std::fs::read(d.join("truth.json")).expect("truth"))
                 .expect("JSON");
-        let e = dist(vec3(&est["center_m"]), vec3(&truth["center_m"]));
-        assert!(e < 0.002, "centre off by {e} m: {}", text(&out.stdout));
+        for segmenter in ["onnx", "onnx-fast"] {
+            let out = stitch(&[
+                "perceive",
+                "needle",
+                s(&d.join("left.png")),
+                s(&d.join("right.png")),
+                "--calib",
+                s(&d.join("calib.toml")),
+                "--segmenter",
+                segmenter,
+            ]);
+            assert_eq!(
+                out.status.code(),
+                Some(0),
+                "{segmenter}: {}",
+                text(&out.stderr)
+            );
+            let est: serde_json::Value = serde_json::from_slice(&out.stdout).expect("JSON");
+            let e = dist(vec3(&est["center_m"]), vec3(&truth["center_m"]));
+            assert!(
+                e < 0.002,
+                "{segmenter}: centre off by {e} m: {}",
+                text(&out.stdout)
+            );
+        }
         std::fs::remove_dir_all(&d).ok();
     }
 

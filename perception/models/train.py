@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Train the needle-and-thread U-Net that `--segmenter onnx` runs, and export it to ONNX.
 
-A developer step, not a CI or user step (PyTorch on CPU: perception/models/requirements.txt).
+A developer step, not a CI or user step (PyTorch on CPU: `pip install torch onnx pillow numpy`).
 The frames come from `stitch perceive dataset --set training` (the mock's renderer under
 randomised cameras); this script randomises them further (tissue colour and texture, glare,
 shadows, needle and thread colour, light, defocus, noise, scale, orientation) so the net
@@ -9,11 +9,14 @@ learns the needle's and the thread's shape rather than the mock's palette. Score
 no training setting made: `stitch bench segmentation` (the independent ray tracer's set).
 
     stitch perceive dataset --set training --frames 700 --seed 7 --out /tmp/seg/train
-    python perception/models/train.py --data /tmp/seg/train --out perception/models
+    python perception/models/train.py --data /tmp/seg/train --steps 4000 --out perception/models
+    python perception/models/train.py --data /tmp/seg/train --steps 6000 --arch half \
+        --name needle_thread_unet_fast --out perception/models
 
-writes needle_thread_unet.onnx (one file, weights inside), the reference pair the Rust tests
-compare against (reference/input.png and reference/logits.bin: this script's PyTorch output
-on that input) and wrong_input.onnx (a model with a one-channel input, for the error test).
+writes NAME.onnx (one file, weights inside; needle_thread_unet by default), the reference the
+Rust tests compare against (reference/input.png and reference/NAME-logits.bin: this script's
+PyTorch output on that input) and, if it is not there, wrong_input.onnx (a model with a
+one-channel input, for the error test).
 
 The contract (docs/perception.md, "The model contract"): input `image`, float32
 [1, 3, H, W], RGB in 0..1 as stored (sRGB, not linearised), H and W multiples of 8; output
@@ -69,6 +72,38 @@ class UNet(nn.Module):
         y = self.d1(up(self.l2(y)) + x1)
         y = self.d0(up(self.l1(y)) + x0)
         return self.head(y)
+
+
+class HalfUNet(nn.Module):
+    """The same U-Net from half resolution: a stride-2 first convolution (which still sees
+    every pixel) and three scales (1/2, 1/4, 1/8), the logits brought back to the input's
+    size bilinearly inside the model. At full resolution the first net's 8-channel
+    convolutions, its skip and its head took half its time (ONNX Runtime's profile, one
+    thread, 256 x 256: 3.6 of 7.8 ms); this one runs in about half the time with as many
+    weights, and learns to place a two-pixel thread between its half-resolution cells."""
+
+    def __init__(self, c=(16, 32, 48)):
+        super().__init__()
+        self.e0 = conv(3, c[0], 2)
+        self.e1 = nn.Sequential(conv(c[0], c[1], 2), conv(c[1], c[1]))
+        self.e2 = nn.Sequential(conv(c[1], c[2], 2), conv(c[2], c[2]))
+        self.l2 = nn.Conv2d(c[2], c[1], 1)
+        self.d1 = conv(c[1], c[1])
+        self.l1 = nn.Conv2d(c[1], c[0], 1)
+        self.d0 = conv(c[0], c[0])
+        self.head = nn.Conv2d(c[0], 2, 1)
+
+    def forward(self, x):
+        x0 = self.e0(x)
+        x1 = self.e1(x0)
+        x2 = self.e2(x1)
+        up = lambda t: F.interpolate(t, scale_factor=2.0, mode="nearest")
+        y = self.d1(up(self.l2(x2)) + x1)
+        y = self.d0(up(self.l1(y)) + x0)
+        return F.interpolate(self.head(y), scale_factor=2.0, mode="bilinear", align_corners=False)
+
+
+ARCHS = {"unet": UNet, "half": HalfUNet}
 
 
 def load(folder):
@@ -230,8 +265,9 @@ def iou(model, items, max_side):
     return acc[:, 0] / np.maximum(acc[:, 1], 1)
 
 
-def write_reference(model, folder, out):
-    """The contract's reference: PyTorch's logits on one crop, for the Rust tests."""
+def write_reference(model, folder, out, name):
+    """The contract's reference: PyTorch's logits on one crop (reference/NAME-logits.bin),
+    for the Rust tests."""
     os.makedirs(os.path.join(out, "reference"), exist_ok=True)
     f = sorted(glob.glob(os.path.join(folder, "[0-9]*[0-9].png")))[0]
     im = Image.open(f).convert("RGB")
@@ -241,7 +277,7 @@ def write_reference(model, folder, out):
     x = torch.from_numpy(np.asarray(im, np.float32).transpose(2, 0, 1) / 255.0)[None]
     with torch.no_grad():
         y = model(x)[0].numpy().astype("<f4")
-    with open(os.path.join(out, "reference", "logits.bin"), "wb") as fh:
+    with open(os.path.join(out, "reference", f"{name}-logits.bin"), "wb") as fh:
         fh.write(struct.pack("<3I", *y.shape))
         fh.write(y.tobytes())
 
@@ -266,13 +302,18 @@ def main():
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--arch", choices=sorted(ARCHS), default="unet",
+                    help="unet: the committed model's; half: the fast one's (from half resolution)")
+    ap.add_argument("--name", default="needle_thread_unet",
+                    help="the model's file name, without .onnx (needle_thread_unet_fast: the fast one)")
+    ap.add_argument("--channels", help="channels per scale, e.g. 16,32,48 (the architecture's own by default)")
     a = ap.parse_args()
     torch.manual_seed(a.seed)
     torch.set_num_threads(a.threads)
     rng = np.random.default_rng(a.seed)
     items = load(a.data)
     val = load(a.val) if a.val else []
-    model = UNet()
+    model = ARCHS[a.arch](*([tuple(int(c) for c in a.channels.split(","))] if a.channels else []))
     print(f"{len(items)} crops, {sum(p.numel() for p in model.parameters())} parameters")
     opt = torch.optim.AdamW(model.parameters(), lr=3e-3, weight_decay=1e-4)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=3e-3, total_steps=a.steps, pct_start=0.1)
@@ -293,7 +334,7 @@ def main():
                 msg += f" val IoU needle {n:.3f} thread {t:.3f}"
             print(msg, flush=True)
     os.makedirs(a.out, exist_ok=True)
-    path = os.path.join(a.out, "needle_thread_unet.onnx")
+    path = os.path.join(a.out, f"{a.name}.onnx")
     export(model, path)
     # One file: fold any external weights back in.
     import onnx
@@ -301,8 +342,10 @@ def main():
     onnx.save_model(m, path, save_as_external_data=False)
     for extra in glob.glob(path + ".data"):
         os.remove(extra)
-    write_reference(model, a.data, a.out)
-    export(UNet_one_channel(), os.path.join(a.out, "wrong_input.onnx"), channels=1)
+    write_reference(model, a.data, a.out, a.name)
+    wrong = os.path.join(a.out, "wrong_input.onnx")
+    if not os.path.exists(wrong):
+        export(UNet_one_channel(), wrong, channels=1)
     print(f"wrote {path} ({os.path.getsize(path)} bytes)")
 
 

@@ -27,7 +27,7 @@ fn reference_input() -> RgbImage {
     }
 }
 
-/// Logits written outside the project (`reference/logits.bin`: PyTorch's for the reference
+/// Logits written outside the project (`reference/NAME-logits.bin`: PyTorch's for the reference
 /// input, by train.py; `reference/shrunk_logits.bin`: by shrunk_reference.py): three
 /// little-endian u32 (channels, height, width), then the floats.
 fn reference_logits(file: &str) -> (Vec<usize>, Vec<f32>) {
@@ -44,10 +44,18 @@ fn reference_logits(file: &str) -> (Vec<usize>, Vec<f32>) {
 }
 
 #[test]
-fn the_committed_model_gives_pytorchs_logits_on_the_reference_input() {
-    let s = committed();
+fn the_committed_models_give_pytorchs_logits_on_the_reference_input() {
+    for name in ["needle_thread_unet", "needle_thread_unet_fast"] {
+        gives_pytorchs_logits(name);
+    }
+}
+
+/// The committed model `NAME.onnx` gives `reference/NAME-logits.bin` (train.py's PyTorch
+/// logits) on the reference input, and the masks those logits make.
+fn gives_pytorchs_logits(name: &str) {
+    let s = OnnxSegmenter::from_file(&models().join(format!("{name}.onnx")), 1).expect(name);
     let img = reference_input();
-    let (dims, want) = reference_logits("logits.bin");
+    let (dims, want) = reference_logits(&format!("{name}-logits.bin"));
     assert_eq!(dims, vec![2, img.height as usize, img.width as usize]);
     let [needle, thread] = s
         .logits(&img, Rect::full(img.width, img.height))
@@ -62,7 +70,7 @@ fn the_committed_model_gives_pytorchs_logits_on_the_reference_input() {
         .fold(0.0f32, f32::max);
     assert!(
         worst < 1e-3,
-        "largest difference from PyTorch's logits: {worst}"
+        "{name}: largest difference from PyTorch's logits: {worst}"
     );
     // The masks are the logits above zero (then needle specks dropped).
     let m = s
