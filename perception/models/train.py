@@ -45,65 +45,49 @@ def conv(cin, cout, stride=1):
 
 
 class UNet(nn.Module):
-    """Three scales down, skips added (not concatenated) on the way up: a few hundred
-    multiply-adds a pixel at full resolution, where a thin wire needs it."""
+    """Scales down by two, skips added (not concatenated) on the way up.
 
-    def __init__(self, c=(8, 16, 32, 48)):
+    `half=False` (the committed model's, channels 8, 16, 32, 48): from full resolution, a
+    few hundred multiply-adds a pixel there, where a thin wire needs it. `half=True` (the
+    fast one's, 16, 32, 48): the first convolution has stride 2 (it still sees every pixel),
+    so the scales are 1/2, 1/4 and 1/8, and the logits are brought back to the input's size
+    bilinearly inside the model. At full resolution the first net's 8-channel convolutions,
+    its skip and its head took half its time (ONNX Runtime's profile, one thread, 256 x 256:
+    3.6 of 7.8 ms); from half resolution it runs in about half the time with as many weights,
+    and learns to place a two-pixel thread between its cells. Either way the input's sides
+    must be multiples of 8 (three halvings)."""
+
+    def __init__(self, c=(8, 16, 32, 48), half=False):
         super().__init__()
-        self.e0 = conv(3, c[0])
-        self.e1 = nn.Sequential(conv(c[0], c[1], 2), conv(c[1], c[1]))
-        self.e2 = nn.Sequential(conv(c[1], c[2], 2), conv(c[2], c[2]))
-        self.e3 = nn.Sequential(conv(c[2], c[3], 2), conv(c[3], c[3]))
-        self.l3 = nn.Conv2d(c[3], c[2], 1)
-        self.d2 = conv(c[2], c[2])
-        self.l2 = nn.Conv2d(c[2], c[1], 1)
-        self.d1 = conv(c[1], c[1])
-        self.l1 = nn.Conv2d(c[1], c[0], 1)
-        self.d0 = conv(c[0], c[0])
+        self.half = half
+        n = len(c)
+        self.e0 = conv(3, c[0], 2 if half else 1)
+        self.down = nn.ModuleList(
+            nn.Sequential(conv(c[i - 1], c[i], 2), conv(c[i], c[i])) for i in range(1, n))
+        # Made in this order (lateral, then decoder, from the coarsest scale) so that a seed
+        # gives the weights it gave when each layer had its own name.
+        lat, dec = [], []
+        for i in range(n - 1, 0, -1):
+            lat.append(nn.Conv2d(c[i], c[i - 1], 1))
+            dec.append(conv(c[i - 1], c[i - 1]))
+        self.lat, self.dec = nn.ModuleList(lat), nn.ModuleList(dec)
         self.head = nn.Conv2d(c[0], 2, 1)
 
     def forward(self, x):
-        x0 = self.e0(x)
-        x1 = self.e1(x0)
-        x2 = self.e2(x1)
-        x3 = self.e3(x2)
+        skips = [self.e0(x)]
+        for d in self.down:
+            skips.append(d(skips[-1]))
         up = lambda t: F.interpolate(t, scale_factor=2.0, mode="nearest")
-        y = self.d2(up(self.l3(x3)) + x2)
-        y = self.d1(up(self.l2(y)) + x1)
-        y = self.d0(up(self.l1(y)) + x0)
-        return self.head(y)
+        y = skips.pop()
+        for lat, dec in zip(self.lat, self.dec):
+            y = dec(up(lat(y)) + skips.pop())
+        y = self.head(y)
+        if self.half:
+            y = F.interpolate(y, scale_factor=2.0, mode="bilinear", align_corners=False)
+        return y
 
 
-class HalfUNet(nn.Module):
-    """The same U-Net from half resolution: a stride-2 first convolution (which still sees
-    every pixel) and three scales (1/2, 1/4, 1/8), the logits brought back to the input's
-    size bilinearly inside the model. At full resolution the first net's 8-channel
-    convolutions, its skip and its head took half its time (ONNX Runtime's profile, one
-    thread, 256 x 256: 3.6 of 7.8 ms); this one runs in about half the time with as many
-    weights, and learns to place a two-pixel thread between its half-resolution cells."""
-
-    def __init__(self, c=(16, 32, 48)):
-        super().__init__()
-        self.e0 = conv(3, c[0], 2)
-        self.e1 = nn.Sequential(conv(c[0], c[1], 2), conv(c[1], c[1]))
-        self.e2 = nn.Sequential(conv(c[1], c[2], 2), conv(c[2], c[2]))
-        self.l2 = nn.Conv2d(c[2], c[1], 1)
-        self.d1 = conv(c[1], c[1])
-        self.l1 = nn.Conv2d(c[1], c[0], 1)
-        self.d0 = conv(c[0], c[0])
-        self.head = nn.Conv2d(c[0], 2, 1)
-
-    def forward(self, x):
-        x0 = self.e0(x)
-        x1 = self.e1(x0)
-        x2 = self.e2(x1)
-        up = lambda t: F.interpolate(t, scale_factor=2.0, mode="nearest")
-        y = self.d1(up(self.l2(x2)) + x1)
-        y = self.d0(up(self.l1(y)) + x0)
-        return F.interpolate(self.head(y), scale_factor=2.0, mode="bilinear", align_corners=False)
-
-
-ARCHS = {"unet": UNet, "half": HalfUNet}
+ARCHS = {"unet": UNet, "half": lambda c=(16, 32, 48): UNet(c, half=True)}
 
 
 def load(folder):
