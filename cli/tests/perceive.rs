@@ -12,10 +12,29 @@ fn stitch(args: &[&str]) -> Output {
         .expect("the stitch binary runs")
 }
 
-fn dir(name: &str) -> PathBuf {
+/// A fresh directory under the system's temporary one, removed when the test passes (kept
+/// for a look when it fails).
+struct TempDir(PathBuf);
+
+impl std::ops::Deref for TempDir {
+    type Target = Path;
+    fn deref(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        if !std::thread::panicking() {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
+    }
+}
+
+fn dir(name: &str) -> TempDir {
     let d = std::env::temp_dir().join(format!("stitch-perceive-{}-{name}", std::process::id()));
     std::fs::create_dir_all(&d).expect("temp dir");
-    d
+    TempDir(d)
 }
 
 fn text(b: &[u8]) -> String {
@@ -32,7 +51,7 @@ fn vec3(v: &serde_json::Value) -> [f64; 3] {
 }
 
 /// Frame 0 of the own set (seed 1) written by `perceive render` into a fresh directory.
-fn rendered(name: &str) -> PathBuf {
+fn rendered(name: &str) -> TempDir {
     let d = dir(name);
     let out = stitch(&[
         "perceive",
@@ -491,7 +510,6 @@ fn dataset_writes_crops_with_labels_of_the_same_size() {
         assert!(needle > 30, "crop {k}: {needle} needle pixels");
         assert!(lab.pixels().all(|p| p.0[0] <= 3));
     }
-    std::fs::remove_dir_all(&d).ok();
 }
 
 #[test]
@@ -575,7 +593,6 @@ mod onnx {
                 text(&out.stdout)
             );
         }
-        std::fs::remove_dir_all(&d).ok();
     }
 
     #[test]
@@ -620,7 +637,6 @@ mod onnx {
             "{}",
             text(&out.stderr)
         );
-        std::fs::remove_dir_all(&d).ok();
     }
 
     #[test]
@@ -657,12 +673,11 @@ mod onnx {
             "{}",
             text(&out.stdout)
         );
-        std::fs::remove_dir_all(&d).ok();
     }
 }
 
 /// The thread tracer's evaluation pair `sample` (own set, seed 1) on disk, with its truth.
-fn rendered_thread(name: &str, sample: &str) -> (PathBuf, serde_json::Value) {
+fn rendered_thread(name: &str, sample: &str) -> (TempDir, serde_json::Value) {
     let d = dir(name);
     let out = stitch(&[
         "perceive",

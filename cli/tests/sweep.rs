@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use support::{stitch_at_root as stitch, text};
 
 fn dir(name: &str) -> PathBuf {
-    std::env::temp_dir().join(format!("stitch-sweep-{}-{name}", std::process::id()))
+    support::test_dir("stitch-sweep").join(name)
 }
 
 /// Every file under `d`, by relative path, sorted.

@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use support::{stitch_at_root as stitch, text};
 
 fn dir(name: &str) -> PathBuf {
-    std::env::temp_dir().join(format!("stitch-trials-{}-{name}", std::process::id()))
+    support::test_dir("stitch-trials").join(name)
 }
 
 fn files(d: &Path) -> Vec<(String, Vec<u8>)> {

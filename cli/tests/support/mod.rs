@@ -51,9 +51,48 @@ pub fn text(b: &[u8]) -> String {
 }
 
 pub fn tmp(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("stitch-cli-test-{}", std::process::id()));
+    test_dir("stitch-cli-test").join(name)
+}
+
+/// This test process's own directory under the system's temporary one, `PREFIX-PID`,
+/// created. The first call for a prefix removes the directories of earlier test processes
+/// that are gone (their files stay for a look until the next run, not for ever: a full run
+/// writes a few hundred megabytes of journals and shards).
+pub fn test_dir(prefix: &str) -> PathBuf {
+    static SWEPT: Mutex<Vec<String>> = Mutex::new(Vec::new());
+    let tmp = std::env::temp_dir();
+    let mut swept = SWEPT.lock().unwrap_or_else(|e| e.into_inner());
+    if !swept.iter().any(|p| p == prefix) {
+        swept.push(prefix.to_string());
+        remove_stale(&tmp, prefix);
+    }
+    let dir = tmp.join(format!("{prefix}-{}", std::process::id()));
     std::fs::create_dir_all(&dir).expect("temp dir");
-    dir.join(name)
+    dir
+}
+
+/// Remove `PREFIX-PID` under `tmp` for every PID that is no longer a process (Linux's
+/// /proc says; elsewhere nothing is removed).
+fn remove_stale(tmp: &Path, prefix: &str) {
+    if !Path::new("/proc/self").exists() {
+        return;
+    }
+    let Ok(entries) = std::fs::read_dir(tmp) else {
+        return;
+    };
+    for e in entries.flatten() {
+        let name = e.file_name();
+        let Some(pid) = name
+            .to_str()
+            .and_then(|n| n.strip_prefix(prefix)?.strip_prefix('-'))
+            .and_then(|pid| pid.parse::<u32>().ok())
+        else {
+            continue;
+        };
+        if !Path::new(&format!("/proc/{pid}")).exists() {
+            let _ = std::fs::remove_dir_all(e.path());
+        }
+    }
 }
 
 /// One test at a time: each runs two processes whose timing bounds (a 0.25 s stale bound, a
