@@ -1,6 +1,8 @@
 //! `stitch perceive …` as a lab uses it: on a rendered pair written to PNG, with the
 //! calibration file it documents.
 
+mod support;
+
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
@@ -12,29 +14,12 @@ fn stitch(args: &[&str]) -> Output {
         .expect("the stitch binary runs")
 }
 
-/// A fresh directory under the system's temporary one, removed when the test passes (kept
-/// for a look when it fails).
-struct TempDir(PathBuf);
-
-impl std::ops::Deref for TempDir {
-    type Target = Path;
-    fn deref(&self) -> &Path {
-        &self.0
-    }
-}
-
-impl Drop for TempDir {
-    fn drop(&mut self) {
-        if !std::thread::panicking() {
-            let _ = std::fs::remove_dir_all(&self.0);
-        }
-    }
-}
-
-fn dir(name: &str) -> TempDir {
-    let d = std::env::temp_dir().join(format!("stitch-perceive-{}-{name}", std::process::id()));
+/// A fresh directory in this test process's own (removed by the next run, as every cli
+/// test's files are).
+fn dir(name: &str) -> PathBuf {
+    let d = support::test_dir("stitch-perceive").join(name);
     std::fs::create_dir_all(&d).expect("temp dir");
-    TempDir(d)
+    d
 }
 
 fn text(b: &[u8]) -> String {
@@ -51,7 +36,7 @@ fn vec3(v: &serde_json::Value) -> [f64; 3] {
 }
 
 /// Frame 0 of the own set (seed 1) written by `perceive render` into a fresh directory.
-fn rendered(name: &str) -> TempDir {
+fn rendered(name: &str) -> PathBuf {
     let d = dir(name);
     let out = stitch(&[
         "perceive",
@@ -677,7 +662,7 @@ mod onnx {
 }
 
 /// The thread tracer's evaluation pair `sample` (own set, seed 1) on disk, with its truth.
-fn rendered_thread(name: &str, sample: &str) -> (TempDir, serde_json::Value) {
+fn rendered_thread(name: &str, sample: &str) -> (PathBuf, serde_json::Value) {
     let d = dir(name);
     let out = stitch(&[
         "perceive",
