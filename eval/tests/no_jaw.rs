@@ -104,6 +104,17 @@ fn a_piece_of_wire_under_a_jaws_fingers_is_joined() {
     found_full_frame(&[5, 9, 71], true);
 }
 
+/// Pairs of the independent set (seed 2) with the swage in a jaw and a strand of thread
+/// passing by the tip (within the 2.5 mm searched round each end): the thread said the tip
+/// was the swage, the taper said otherwise, and each was refused (`ambiguous_endpoints`).
+/// Where the two disagree, a strand that enters the search disc and leaves it again is not
+/// counted as the thread leaving the swage, and the taper decides. Full frame, no hint:
+/// each is found within a millimetre and 5°.
+#[test]
+fn a_strand_passing_the_tip_does_not_mark_it_as_the_swage() {
+    found_full_frame(&[13, 97], true);
+}
+
 /// Each of seed 2's independent pairs `pairs`, full frame with no hint, is found within a
 /// millimetre and 5°; `jaw`: each must have a jaw in view.
 fn found_full_frame(pairs: &[usize], jaw: bool) {

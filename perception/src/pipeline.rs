@@ -711,10 +711,13 @@ impl NeedlePipeline {
         let full = (arc.extent - PI).abs() <= p.full_arc_tolerance_rad;
         // Outward along the circle past each end.
         let tangent = |a: f64| e2 * a.cos() - e1 * a.sin();
-        let threads = [
-            self.thread_near(&lm, &at(lo_end), &-tangent(lo_end)),
-            self.thread_near(&lm, &at(hi_end), &tangent(hi_end)),
-        ];
+        let thread_at = |strands| {
+            [
+                self.thread_near(&lm, &at(lo_end), &-tangent(lo_end), strands),
+                self.thread_near(&lm, &at(hi_end), &tangent(hi_end), strands),
+            ]
+        };
+        let mut threads = thread_at(Strands::All);
         // The tip tapers: the wire's width in the image near an end against its width 3 mm
         // along, for each observed end (the direction along the arc into the needle).
         let step = 0.001 / r;
@@ -722,7 +725,6 @@ impl NeedlePipeline {
             self.width_ratio(&lm, &circle, lo_end, step),
             self.width_ratio(&lm, &circle, hi_end, -step),
         ];
-        diag.thread_px = threads;
         diag.taper = taper;
         let tip_like = taper.map(|t| t.is_some_and(|t| t > 0.2 && t < p.tip_taper_ratio));
         // A known jaw decides: the end it holds the needle nearer to (if clearly nearer).
@@ -739,7 +741,21 @@ impl NeedlePipeline {
                 if lo_is_tip { 8 } else { -8 }
             }
         });
-        let Some(tip_is_lo) = tip_is_low_end(threads, taper, jaw_score, p) else {
+        let mut decided = tip_is_low_end(threads, taper, jaw_score, p);
+        let by_taper = tip_is_low_end([0, 0], taper, 0, p);
+        if decided.is_none() && by_taper.is_some() {
+            // The thread contradicts the taper: a strand that only passes an end is not the
+            // thread leaving the swage. Counted again without such strands, the taper decides
+            // if the thread no longer says otherwise (never the thread alone: a strand
+            // leaving the swage and bending back across the disc looks like one passing).
+            let leaving = thread_at(Strands::Leaving);
+            if tip_is_low_end(leaving, taper, jaw_score, p) == by_taper {
+                threads = leaving;
+                decided = by_taper;
+            }
+        }
+        diag.thread_px = threads;
+        let Some(tip_is_lo) = decided else {
             return Err(PerceptionError::AmbiguousEndpoints {
                 why: format!(
                     "thread pixels near the two ends: {} and {}; width at the ends against 3 mm in: {} and {}",
@@ -1411,8 +1427,9 @@ impl NeedlePipeline {
     }
 
     /// Thread pixels in the left view within `swage_search_m` of a robot-frame end of the
-    /// wire, on its `outward` side (the direction past the end along the circle).
-    fn thread_near(&self, masks: &Masks, p: &Point, outward: &Vector) -> usize {
+    /// wire, on its `outward` side (the direction past the end along the circle); of all the
+    /// thread there, or only of the pieces that do not pass by ([`Strands`]).
+    fn thread_near(&self, masks: &Masks, p: &Point, outward: &Vector, strands: Strands) -> usize {
         let c = &self.calibration;
         let (Some([u, v]), Some([ou, ov])) = (
             c.left_pixel(p),
@@ -1426,27 +1443,160 @@ impl NeedlePipeline {
         // back along the wire are a thread lying across the needle, not leaving it.
         let len = (ou - u).hypot(ov - v).max(1e-9);
         let (du, dv) = ((ou - u) / len, (ov - v) / len);
-        let (x0, x1) = (
-            (u - rad).floor().max(0.0) as u32,
-            (u + rad).ceil().max(0.0) as u32,
-        );
-        let (y0, y1) = (
-            (v - rad).floor().max(0.0) as u32,
-            (v + rad).ceil().max(0.0) as u32,
-        );
+        let disc = Disc::new(u, v, rad, &masks.roi);
+        let passing = match strands {
+            Strands::All => None,
+            Strands::Leaving => Some(disc.passing_pieces(masks)),
+        };
         let mut n = 0;
-        for y in y0..=y1 {
-            for x in x0..=x1 {
+        for y in disc.y0..=disc.y1 {
+            for x in disc.x0..=disc.x1 {
                 let (dx, dy) = (x as f64 + 0.5 - u, y as f64 + 0.5 - v);
                 if dx * dx + dy * dy <= rad * rad
                     && dx * du + dy * dv >= -0.2 * rad
                     && masks.is_thread(x, y)
+                    && passing.as_ref().is_none_or(|m| !m[disc.index(x, y)])
                 {
                     n += 1;
                 }
             }
         }
         n
+    }
+}
+
+/// Which thread [`NeedlePipeline::thread_near`] counts near an end of the wire.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Strands {
+    /// Every thread pixel.
+    All,
+    /// Only pieces that could be the thread leaving the swage: not a strand that passes
+    /// by the end (in the disc at one side of its rim and out at another).
+    Leaving,
+}
+
+/// The pixels within `rad` of `(u, v)` in the image, and the box round them inside a mask
+/// region (no pixel outside it is thread), for [`NeedlePipeline::thread_near`].
+struct Disc {
+    u: f64,
+    v: f64,
+    rad: f64,
+    x0: u32,
+    x1: u32,
+    y0: u32,
+    y1: u32,
+}
+
+impl Disc {
+    /// The disc's box cut to `roi` (empty, `x1 < x0` or `y1 < y0`, if they do not meet).
+    fn new(u: f64, v: f64, rad: f64, roi: &Rect) -> Self {
+        let lo = |c: f64, r0: u32| ((c - rad).floor().max(0.0) as u32).max(r0);
+        let hi = |c: f64, r1: u32| ((c + rad).ceil().max(0.0) as u32).min(r1.saturating_sub(1));
+        Self {
+            u,
+            v,
+            rad,
+            x0: lo(u, roi.x0),
+            x1: hi(u, roi.x1),
+            y0: lo(v, roi.y0),
+            y1: hi(v, roi.y1),
+        }
+    }
+
+    fn width(&self) -> usize {
+        (self.x1 + 1).saturating_sub(self.x0) as usize
+    }
+
+    fn height(&self) -> usize {
+        (self.y1 + 1).saturating_sub(self.y0) as usize
+    }
+
+    /// Index of an image pixel inside the box, row by row.
+    fn index(&self, x: u32, y: u32) -> usize {
+        (y - self.y0) as usize * self.width() + (x - self.x0) as usize
+    }
+
+    fn contains(&self, x: u32, y: u32) -> bool {
+        let (dx, dy) = (x as f64 + 0.5 - self.u, y as f64 + 0.5 - self.v);
+        (self.x0..=self.x1).contains(&x)
+            && (self.y0..=self.y1).contains(&y)
+            && dx * dx + dy * dy <= self.rad * self.rad
+    }
+
+    /// For each pixel of the box, whether it is thread on a strand passing by: an
+    /// 8-connected piece of the thread inside the disc that meets the disc's rim in two or
+    /// more places. The thread leaving the swage at the centre meets it once; a strand
+    /// passing the end goes in and out again. (A strand that leaves the swage and comes back
+    /// within the disc counts as passing too, which is why it is asked only when the cues
+    /// disagree.)
+    fn passing_pieces(&self, masks: &Masks) -> Vec<bool> {
+        const GAP: i32 = 3;
+        let (w, h) = (self.width(), self.height());
+        let thread = |x: u32, y: u32| self.contains(x, y) && masks.is_thread(x, y);
+        // The pieces, labelled 1.. by a flood fill.
+        let mut label = vec![0u32; w * h];
+        let mut pieces = 0;
+        let mut stack = Vec::new();
+        for y in self.y0..=self.y1 {
+            for x in self.x0..=self.x1 {
+                if label[self.index(x, y)] != 0 || !thread(x, y) {
+                    continue;
+                }
+                pieces += 1;
+                label[self.index(x, y)] = pieces;
+                stack.push((x, y));
+                while let Some((cx, cy)) = stack.pop() {
+                    for (ox, oy) in (-GAP..=GAP).flat_map(|oy| (-GAP..=GAP).map(move |ox| (ox, oy)))
+                    {
+                        let (Some(nx), Some(ny)) =
+                            (cx.checked_add_signed(ox), cy.checked_add_signed(oy))
+                        else {
+                            continue;
+                        };
+                        if thread(nx, ny) && label[self.index(nx, ny)] == 0 {
+                            label[self.index(nx, ny)] = pieces;
+                            stack.push((nx, ny));
+                        }
+                    }
+                }
+            }
+        }
+        // Each piece's runs along the rim, sampled about a pixel apart just inside it. (Where
+        // the disc reaches past the masks' region, a strand running out of the region is
+        // not known to cross the rim there: the region may end at the image's edge, with the
+        // swage just beyond it.)
+        let ring = (self.rad - 1.0).max(0.5);
+        let n = (2.0 * PI * ring).ceil().max(8.0) as usize;
+        let on_rim: Vec<u32> = (0..n)
+            .map(|k| {
+                let a = 2.0 * PI * k as f64 / n as f64;
+                let (x, y) = (self.u + ring * a.cos(), self.v + ring * a.sin());
+                if x < 0.0 || y < 0.0 || !self.contains(x as u32, y as u32) {
+                    0
+                } else {
+                    label[self.index(x as u32, y as u32)]
+                }
+            })
+            .collect();
+        // A run goes on across gaps of up to `GAP` samples (a ragged mask's crossing is one).
+        let hits: Vec<(usize, u32)> = on_rim
+            .iter()
+            .enumerate()
+            .filter(|&(_, &l)| l != 0)
+            .map(|(k, &l)| (k, l))
+            .collect();
+        let mut runs = vec![0u32; pieces as usize + 1];
+        for (i, &(k, l)) in hits.iter().enumerate() {
+            let (pk, pl) = hits[(i + hits.len() - 1) % hits.len()];
+            let gap = (k + n - pk - 1) % n;
+            if hits.len() == 1 || pl != l || gap > GAP as usize {
+                runs[l as usize] += 1;
+            }
+        }
+        label
+            .iter()
+            .map(|&l| l != 0 && runs[l as usize] >= 2)
+            .collect()
     }
 }
 
@@ -1733,6 +1883,69 @@ mod tests {
 
     fn rect(x0: u32, y0: u32, x1: u32, y1: u32) -> Rect {
         Rect { x0, y0, x1, y1 }
+    }
+
+    /// Masks over `roi` with thread at `thread`'s pixels.
+    fn thread_masks(roi: Rect, thread: impl Fn(u32, u32) -> bool) -> Masks {
+        let mut m = Masks {
+            roi,
+            needle: vec![0; (roi.width() * roi.height()) as usize],
+            thread: vec![0; (roi.width() * roi.height()) as usize],
+        };
+        for y in roi.y0..roi.y1 {
+            for x in roi.x0..roi.x1 {
+                m.thread[((y - roi.y0) * roi.width() + (x - roi.x0)) as usize] =
+                    u8::from(thread(x, y));
+            }
+        }
+        m
+    }
+
+    /// Thread pixels within 20 px of (100.5, 100.5) on strands passing by.
+    fn passing(m: &Masks) -> usize {
+        let d = Disc::new(100.5, 100.5, 20.0, &m.roi);
+        d.passing_pieces(m).iter().filter(|&&p| p).count()
+    }
+
+    #[test]
+    fn a_strand_passing_an_end_is_told_from_one_leaving_it() {
+        let roi = rect(0, 0, 200, 200);
+        let disc = Disc::new(100.5, 100.5, 20.0, &roi);
+        // The thread leaving the end: a strand from the centre out past the rim.
+        let leaving = |x: u32, y: u32| (100..=101).contains(&y) && x >= 100;
+        assert_eq!(passing(&thread_masks(roi, leaving)), 0);
+        // A strand passing 10 px from the end, broken every 5 px by gaps of 2 (a thin
+        // thread's mask is ragged): one strand, in and out again.
+        let by = |x: u32, y: u32| (110..=111).contains(&y) && x % 5 < 3;
+        let m = thread_masks(roi, by);
+        assert!(passing(&m) > 0);
+        assert_eq!(
+            passing(&m),
+            (0..200)
+                .flat_map(|x| (0..200).map(move |y| (x, y)))
+                .filter(|&(x, y)| by(x, y) && disc.contains(x, y))
+                .count()
+        );
+        // Both: only the passing strand's pixels are set aside.
+        let m = thread_masks(roi, |x, y| leaving(x, y) || by(x, y));
+        let leaving_px = (0..200)
+            .flat_map(|x| (0..200).map(move |y| (x, y)))
+            .filter(|&(x, y)| leaving(x, y) && disc.contains(x, y))
+            .count();
+        let all_px = (0..200)
+            .flat_map(|x| (0..200).map(move |y| (x, y)))
+            .filter(|&(x, y)| (leaving(x, y) || by(x, y)) && disc.contains(x, y))
+            .count();
+        assert_eq!(passing(&m), all_px - leaving_px);
+        // A strand 8 px beside the end, across the disc: passing. Where the masks' region
+        // (here the image) ends inside the disc 10 px below the end, the same strand runs
+        // out of sight there: not known to pass (the swage may lie just beyond the edge).
+        let down = |x: u32, _: u32| (108..=109).contains(&x);
+        assert!(passing(&thread_masks(roi, down)) > 0);
+        assert_eq!(passing(&thread_masks(rect(0, 0, 200, 110), down)), 0);
+        // A stub that ends inside the disc without reaching the rim is not passing.
+        let stub = |x: u32, y: u32| y == 95 && (90..110).contains(&x);
+        assert_eq!(passing(&thread_masks(roi, stub)), 0);
     }
 
     #[test]
