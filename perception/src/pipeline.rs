@@ -1911,32 +1911,23 @@ mod tests {
     fn a_strand_passing_an_end_is_told_from_one_leaving_it() {
         let roi = rect(0, 0, 200, 200);
         let disc = Disc::new(100.5, 100.5, 20.0, &roi);
+        let in_disc = |f: &dyn Fn(u32, u32) -> bool| {
+            (0..200)
+                .flat_map(|x| (0..200).map(move |y| (x, y)))
+                .filter(|&(x, y)| f(x, y) && disc.contains(x, y))
+                .count()
+        };
         // The thread leaving the end: a strand from the centre out past the rim.
         let leaving = |x: u32, y: u32| (100..=101).contains(&y) && x >= 100;
         assert_eq!(passing(&thread_masks(roi, leaving)), 0);
         // A strand passing 10 px from the end, broken every 5 px by gaps of 2 (a thin
-        // thread's mask is ragged): one strand, in and out again.
+        // thread's mask is ragged): one strand, in and out again, all of it set aside.
         let by = |x: u32, y: u32| (110..=111).contains(&y) && x % 5 < 3;
-        let m = thread_masks(roi, by);
-        assert!(passing(&m) > 0);
-        assert_eq!(
-            passing(&m),
-            (0..200)
-                .flat_map(|x| (0..200).map(move |y| (x, y)))
-                .filter(|&(x, y)| by(x, y) && disc.contains(x, y))
-                .count()
-        );
+        assert!(in_disc(&by) > 0);
+        assert_eq!(passing(&thread_masks(roi, by)), in_disc(&by));
         // Both: only the passing strand's pixels are set aside.
-        let m = thread_masks(roi, |x, y| leaving(x, y) || by(x, y));
-        let leaving_px = (0..200)
-            .flat_map(|x| (0..200).map(move |y| (x, y)))
-            .filter(|&(x, y)| leaving(x, y) && disc.contains(x, y))
-            .count();
-        let all_px = (0..200)
-            .flat_map(|x| (0..200).map(move |y| (x, y)))
-            .filter(|&(x, y)| (leaving(x, y) || by(x, y)) && disc.contains(x, y))
-            .count();
-        assert_eq!(passing(&m), all_px - leaving_px);
+        let both = |x: u32, y: u32| leaving(x, y) || by(x, y);
+        assert_eq!(passing(&thread_masks(roi, both)), in_disc(&by));
         // A strand 8 px beside the end, across the disc: passing. Where the masks' region
         // (here the image) ends inside the disc 10 px below the end, the same strand runs
         // out of sight there: not known to pass (the swage may lie just beyond the edge).
