@@ -1528,7 +1528,8 @@ impl Disc {
     /// more places. The thread leaving the swage at the centre meets it once; a strand
     /// passing the end goes in and out again. (A strand that leaves the swage and comes back
     /// within the disc counts as passing too, which is why it is asked only when the cues
-    /// disagree.)
+    /// disagree.) A flood fill written here: the labelling crates (imageproc's connected
+    /// components) bridge no gaps, and the disc is a few hundred pixels.
     fn passing_pieces(&self, masks: &Masks) -> Vec<bool> {
         const GAP: i32 = 3;
         let (w, h) = (self.width(), self.height());
