@@ -73,6 +73,13 @@ pub struct PipelineParams {
     pub taper_difference: f64,
     /// An end whose wire is wider than this share of its width 3 mm along is the swage.
     pub swage_taper_ratio: f64,
+    /// An end whose wire measures wider than this share of its width 3 mm in, with an
+    /// instrument beside it (`min_instrument_share`), is a jaw's steel merged with the wire:
+    /// its taper is not read (a swage is at most about 1.35 times the wire).
+    pub max_end_width_ratio: f64,
+    /// Least share of the left image's pixels within `swage_search_m` of an end that are
+    /// dark grey (an instrument's shaft or fingers) for `max_end_width_ratio` to apply.
+    pub min_instrument_share: f64,
     /// Least thread pixels near the swage end.
     pub min_thread_px: usize,
     /// The swage end must have at least this many times the other end's thread pixels.
@@ -138,6 +145,8 @@ impl Default for PipelineParams {
             tip_taper_ratio: 0.8,
             swage_taper_ratio: 1.08,
             taper_difference: 0.25,
+            max_end_width_ratio: 1.6,
+            min_instrument_share: 0.1,
             min_thread_px: 4,
             swage_ratio: 2.0,
             jaw_margin_rad: 30f64.to_radians(),
@@ -620,7 +629,7 @@ impl NeedlePipeline {
         candidate: usize,
     ) -> Option<Result<PipelineOutput, PerceptionError>> {
         match self.cloud(left, right, region, candidate) {
-            Ok(Some(found)) => Some(self.fit(found, jaw, seed)),
+            Ok(Some(found)) => Some(self.fit(found, jaw, seed, left)),
             Ok(None) => None,
             Err(e) => Some(Err(e)),
         }
@@ -632,6 +641,7 @@ impl NeedlePipeline {
         (lm, rm, cloud, mut diag): Found,
         jaw: Option<&JawHint>,
         seed: u64,
+        left: &stitch_robot::RgbImage,
     ) -> Result<PipelineOutput, PerceptionError> {
         let c = &self.calibration;
         let p = &self.params;
@@ -725,6 +735,14 @@ impl NeedlePipeline {
             self.width_ratio(&lm, &circle, lo_end, step),
             self.width_ratio(&lm, &circle, hi_end, -step),
         ];
+        // An end far wider than wire or swage with an instrument's steel round it is a jaw
+        // merged with the wire: its width says nothing of a taper.
+        let taper = [(0, lo_end), (1, hi_end)].map(|(i, end)| {
+            taper[i].filter(|&t| {
+                t <= p.max_end_width_ratio
+                    || self.instrument_share(left, &at(end)) < p.min_instrument_share
+            })
+        });
         diag.taper = taper;
         let tip_like = taper.map(|t| t.is_some_and(|t| t > 0.2 && t < p.tip_taper_ratio));
         // A known jaw decides: the end it holds the needle nearer to (if clearly nearer).
@@ -1426,6 +1444,17 @@ impl NeedlePipeline {
         (x - 1..=x + 1).any(|x| rm.is_needle(x, y))
     }
 
+    /// The share of the left image's pixels within `swage_search_m` of a robot-frame point
+    /// that are dark grey ([`dark_grey_share`]); 0 if it is not in view.
+    fn instrument_share(&self, left: &stitch_robot::RgbImage, p: &Point) -> f64 {
+        let c = &self.calibration;
+        let Some([u, v]) = c.left_pixel(p) else {
+            return 0.0;
+        };
+        let z = (c.camera_to_robot.inverse() * p).z;
+        dark_grey_share(left, u, v, (c.fx * self.params.swage_search_m / z).max(2.0))
+    }
+
     /// Thread pixels in the left view within `swage_search_m` of a robot-frame end of the
     /// wire, on its `outward` side (the direction past the end along the circle); of all the
     /// thread there, or only of the pieces that do not pass by ([`Strands`]).
@@ -1463,6 +1492,39 @@ impl NeedlePipeline {
         }
         n
     }
+}
+
+/// The share of `image`'s pixels within `rad` of `(u, v)` that are dark and grey (the
+/// brightest channel under 90 of 255, the channels within 35 % of it): an instrument's
+/// black shaft and steel fingers in shade; not tissue or its shadows (red), the thread
+/// (violet) or the needle (bright). 0 if none of the disc is in the image.
+fn dark_grey_share(image: &stitch_robot::RgbImage, u: f64, v: f64, rad: f64) -> f64 {
+    if image.width == 0 || image.height == 0 || !(u.is_finite() && v.is_finite()) {
+        return 0.0;
+    }
+    let clip = |c: f64, n: u32| (c.max(0.0) as u32).min(n - 1);
+    let (x0, x1) = (clip(u - rad, image.width), clip(u + rad, image.width));
+    let (y0, y1) = (clip(v - rad, image.height), clip(v + rad, image.height));
+    let (mut all, mut dark) = (0usize, 0usize);
+    for y in y0..=y1 {
+        for x in x0..=x1 {
+            let (dx, dy) = (x as f64 + 0.5 - u, y as f64 + 0.5 - v);
+            if dx * dx + dy * dy > rad * rad {
+                continue;
+            }
+            let i = (y as usize * image.width as usize + x as usize) * 3;
+            let Some(px) = image.data.get(i..i + 3) else {
+                continue;
+            };
+            let (hi, lo) = (px.iter().max().copied(), px.iter().min().copied());
+            let (hi, lo) = (f64::from(hi.unwrap_or(0)), f64::from(lo.unwrap_or(0)));
+            all += 1;
+            if hi < 90.0 && hi - lo <= 0.35 * hi {
+                dark += 1;
+            }
+        }
+    }
+    dark as f64 / all.max(1) as f64
 }
 
 /// Which thread [`NeedlePipeline::thread_near`] counts near an end of the wire.
@@ -1938,6 +2000,32 @@ mod tests {
         // A stub that ends inside the disc without reaching the rim is not passing.
         let stub = |x: u32, y: u32| y == 95 && (90..110).contains(&x);
         assert_eq!(passing(&thread_masks(roi, stub)), 0);
+    }
+
+    #[test]
+    fn an_instruments_dark_steel_is_told_from_tissue_and_its_shadows() {
+        // Red tissue, its shadow (dark red), a black shaft over the right half.
+        let mut image = stitch_robot::RgbImage::new(100, 100);
+        for y in 0..100u32 {
+            for x in 0..100u32 {
+                let px = match (x, y) {
+                    (50.., _) => [30, 32, 35],
+                    (_, 50..) => [70, 20, 22],
+                    _ => [180, 70, 70],
+                };
+                let i = (y as usize * 100 + x as usize) * 3;
+                image.data[i..i + 3].copy_from_slice(&px);
+            }
+        }
+        // Round a point on the shaft's edge, half the disc is the shaft.
+        let s = dark_grey_share(&image, 50.0, 25.0, 10.0);
+        assert!((s - 0.5).abs() < 0.06, "{s}");
+        // Tissue and its shadow alone: none.
+        assert_eq!(dark_grey_share(&image, 20.0, 50.0, 10.0), 0.0);
+        // On the shaft: all; off the image: none, never a panic.
+        assert_eq!(dark_grey_share(&image, 80.0, 80.0, 5.0), 1.0);
+        assert_eq!(dark_grey_share(&image, -500.0, 20.0, 10.0), 0.0);
+        assert_eq!(dark_grey_share(&image, f64::NAN, 20.0, 10.0), 0.0);
     }
 
     #[test]
