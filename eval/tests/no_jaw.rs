@@ -129,7 +129,9 @@ fn a_jaws_steel_merged_with_the_wire_is_not_read_as_a_taper() {
     let p = NeedlePipeline::classical(r.calibration().clone(), Needle::default()).expect("p");
     let results = own::run(&p, &r, &samples, 1, false);
     for i in [15usize, 131] {
-        let e = results[i].error.unwrap_or_else(|| panic!("frame {i}: {:?}", results[i]));
+        let e = results[i]
+            .error
+            .unwrap_or_else(|| panic!("frame {i}: {:?}", results[i]));
         assert!(
             e.endpoints_m() <= 1e-3 && e.normal_rad <= 5f64.to_radians(),
             "frame {i}: {e:?}"
