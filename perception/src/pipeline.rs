@@ -2021,11 +2021,11 @@ mod tests {
         let s = dark_grey_share(&image, 50.0, 25.0, 10.0);
         assert!((s - 0.5).abs() < 0.06, "{s}");
         // Tissue and its shadow alone: none.
-        assert_eq!(dark_grey_share(&image, 20.0, 50.0, 10.0), 0.0);
+        assert!(dark_grey_share(&image, 20.0, 50.0, 10.0) < 1e-12);
         // On the shaft: all; off the image: none, never a panic.
-        assert_eq!(dark_grey_share(&image, 80.0, 80.0, 5.0), 1.0);
-        assert_eq!(dark_grey_share(&image, -500.0, 20.0, 10.0), 0.0);
-        assert_eq!(dark_grey_share(&image, f64::NAN, 20.0, 10.0), 0.0);
+        assert!(dark_grey_share(&image, 80.0, 80.0, 5.0) > 1.0 - 1e-12);
+        assert!(dark_grey_share(&image, -500.0, 20.0, 10.0) < 1e-12);
+        assert!(dark_grey_share(&image, f64::NAN, 20.0, 10.0) < 1e-12);
     }
 
     #[test]
