@@ -139,6 +139,16 @@ fn a_jaws_steel_merged_with_the_wire_is_not_read_as_a_taper() {
     }
 }
 
+/// Pairs of the independent set (seed 2) where neither the thread nor the left view's taper
+/// told the ends apart (each `ambiguous_endpoints`: widths at the ends against 3 mm in such as
+/// 1.02 and 0.83, 0.56 and 0.73, 1.24 and 1.28, where the rule asks for 0.25 between them) and
+/// the right view's taper does, leaning the same way. Full frame, no hint: each within a
+/// millimetre and 5°.
+#[test]
+fn an_end_the_left_view_cannot_read_is_read_in_the_right() {
+    found_full_frame(&[35, 85, 87, 146], false);
+}
+
 /// Each of seed 2's independent pairs `pairs`, full frame with no hint, is found within a
 /// millimetre and 5°; `jaw`: each must have a jaw in view.
 fn found_full_frame(pairs: &[usize], jaw: bool) {

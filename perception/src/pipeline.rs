@@ -732,8 +732,8 @@ impl NeedlePipeline {
         // along, for each observed end (the direction along the arc into the needle).
         let step = 0.001 / r;
         let taper = [
-            self.width_ratio(&lm, &circle, lo_end, step),
-            self.width_ratio(&lm, &circle, hi_end, -step),
+            self.width_ratio((&lm, false), &circle, lo_end, step),
+            self.width_ratio((&lm, false), &circle, hi_end, -step),
         ];
         // An end far wider than wire or swage with an instrument's steel round it is a jaw
         // merged with the wire: its width says nothing of a taper.
@@ -770,6 +770,28 @@ impl NeedlePipeline {
             if tip_is_low_end(leaving, taper, jaw_score, p) == by_taper {
                 threads = leaving;
                 decided = by_taper;
+            }
+        }
+        if decided.is_none() {
+            // The left view's cues leave it open: an end is a few pixels wide, and one view's
+            // mask may lose or add a pixel there. The right view's taper, read the same way,
+            // decides if it tells the ends apart by itself, the left view's taper leans the
+            // same way (the narrower end the tip) and the thread does not say otherwise.
+            let right_taper = [(lo_end, step), (hi_end, -step)].map(|(end, inward)| {
+                self.width_ratio((&rm, true), &circle, end, inward)
+                    .filter(|&t| {
+                        t <= p.max_end_width_ratio
+                            || self.instrument_share(left, &at(end)) < p.min_instrument_share
+                    })
+            });
+            if let Some(lo_is_tip) = tip_is_low_end([0, 0], right_taper, 0, p) {
+                let leans = match taper {
+                    [Some(lo), Some(hi)] => (lo < hi) == lo_is_tip,
+                    _ => by_taper.is_none_or(|b| b == lo_is_tip),
+                };
+                if leans && tip_is_low_end(threads, right_taper, jaw_score, p) == Some(lo_is_tip) {
+                    decided = Some(lo_is_tip);
+                }
             }
         }
         diag.thread_px = threads;
@@ -1097,14 +1119,18 @@ impl NeedlePipeline {
     }
 
     /// The needle mask's width across the projected arc at `angle` on `circle`, pixels
-    /// (`None` where the arc does not project).
-    fn width_at(&self, masks: &Masks, circle: &Circle, a: f64) -> Option<f64> {
+    /// (`None` where the arc does not project); `right`: the masks are the right view's.
+    fn width_at(&self, (masks, right): (&Masks, bool), circle: &Circle, a: f64) -> Option<f64> {
         let c = &self.calibration;
         let (e1, e2) = plane_basis(&circle.normal);
         let r = circle.radius;
+        // The camera whose view the masks are: the right one of a rectified pair sits a
+        // baseline along the left one's x axis.
+        let shift = Vector::new(if right { c.baseline_m } else { 0.0 }, 0.0, 0.0);
         let to_cam = c.camera_to_robot.inverse();
-        let p = to_cam * (circle.center + (e1 * a.cos() + e2 * a.sin()) * r);
-        let q = to_cam * (circle.center + (e1 * (a + 1e-3).cos() + e2 * (a + 1e-3).sin()) * r);
+        let p = to_cam * (circle.center + (e1 * a.cos() + e2 * a.sin()) * r) - shift;
+        let q =
+            to_cam * (circle.center + (e1 * (a + 1e-3).cos() + e2 * (a + 1e-3).sin()) * r) - shift;
         if p.z <= 1e-6 || q.z <= 1e-6 {
             return None;
         }
@@ -1133,7 +1159,13 @@ impl NeedlePipeline {
     /// The needle mask's width across the projected arc, pixels, averaged at 0.3, 0.6 and
     /// 0.9 mm from the end at `angle` (moving by `step` rad per mm into the needle), over the
     /// same at 3 mm: `None` if the wire is not seen there.
-    fn width_ratio(&self, masks: &Masks, circle: &Circle, angle: f64, step: f64) -> Option<f64> {
+    fn width_ratio(
+        &self,
+        masks: (&Masks, bool),
+        circle: &Circle,
+        angle: f64,
+        step: f64,
+    ) -> Option<f64> {
         let near: Vec<f64> = [0.3, 0.6, 0.9]
             .iter()
             .filter_map(|mm| self.width_at(masks, circle, angle + step * mm))
@@ -1150,6 +1182,7 @@ impl NeedlePipeline {
     /// with a line and followed to zero width. 0 if the profile does not narrow outward;
     /// at most 2 mm.
     fn taper_lost_m(&self, masks: &Masks, circle: &Circle, angle: f64, step: f64) -> f64 {
+        let masks = (masks, false);
         let Some(full) = self.width_at(masks, circle, angle + step * 3.0) else {
             return 0.0;
         };
