@@ -121,8 +121,8 @@ proptest! {
             pts.push(c + Vector::new(rng.random_range(-0.02..0.02), rng.random_range(-0.02..0.02), rng.random_range(-0.02..0.02)));
         }
         let p = RansacParams::default();
-        let (plane, _) = ransac_plane(&pts, &p, &mut rng).expect("plane");
-        let (circle, inliers) = ransac_circle(&pts, &plane, r, &p, &mut rng).expect("circle");
+        let (plane, _) = ransac_plane(&pts, &[], &p, &mut rng).expect("plane");
+        let (circle, inliers) = ransac_circle(&pts, &[], &plane, r, &p, &mut rng).expect("circle");
         prop_assert!((circle.center - c).norm() < 0.0003, "centre off by {} m", (circle.center - c).norm());
         prop_assert!(circle.normal.cross(&n).norm() < 2f64.to_radians().sin());
         prop_assert!(inliers.len() >= 280, "{} inliers", inliers.len());

@@ -30,6 +30,56 @@ impl Plane {
     }
 }
 
+/// How much a point's offset along its own viewing ray counts, against an offset across
+/// it. Stereo places a point across the view to a fraction of a pixel, but along the ray
+/// only to a fraction of the rig's disparity step (depth² / (focal length × baseline)), which
+/// on a narrow-baseline rig is several times coarser: a distance that counts both alike
+/// takes the needle's own noisy points for clutter. A distance here is measured with the
+/// ray's part scaled by √(1 − `k`) (`k` = 0: as it is).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RayDiscount {
+    /// Unit direction from the camera to the point.
+    pub dir: Vector,
+    /// 1 − s², where s (0 < s ≤ 1) scales the offset along `dir`.
+    pub k: f64,
+}
+
+impl RayDiscount {
+    /// The length of the offset `r` from a point, its part along the ray discounted.
+    pub fn length(&self, r: &Vector) -> f64 {
+        (r.norm_squared() - self.k * r.dot(&self.dir).powi(2))
+            .max(0.0)
+            .sqrt()
+    }
+
+    /// The discounted distance of the point (offset `h` along `normal`) from a plane: the
+    /// least discounted length of an offset that reaches the plane.
+    pub fn plane_distance(&self, h: f64, normal: &Vector) -> f64 {
+        // The least of √(xᵀMx) over x with n·x = h, M = I − k·d dᵀ, is |h| / √(nᵀM⁻¹n), and
+        // M⁻¹ = I + k / (1 − k) · d dᵀ.
+        let c = normal.dot(&self.dir);
+        h.abs() / (1.0 + self.k / (1.0 - self.k) * c * c).sqrt()
+    }
+}
+
+/// The distance of `points[i]` from the circle, its ray's part discounted where `rays`
+/// gives one (`rays` is empty, or one for each point).
+fn circle_distance(c: &Circle, points: &[Point], rays: &[RayDiscount], i: usize) -> f64 {
+    match rays.get(i) {
+        Some(d) => d.length(&c.offset(&points[i])),
+        None => c.distance(&points[i]),
+    }
+}
+
+/// The distance of `points[i]` from the plane, discounted as [`circle_distance`]'s.
+fn plane_distance(p: &Plane, points: &[Point], rays: &[RayDiscount], i: usize) -> f64 {
+    let h = p.distance(&points[i]);
+    match rays.get(i) {
+        Some(d) => d.plane_distance(h, &p.normal),
+        None => h.abs(),
+    }
+}
+
 /// RANSAC parameters.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -85,9 +135,10 @@ pub fn fit_plane(points: &[Point]) -> Option<Plane> {
 }
 
 /// RANSAC plane: the plane through three points with the most inliers, refitted to them.
-/// Returns it and the inliers' indices.
+/// Returns it and the inliers' indices. `rays`: none, or each point's [`RayDiscount`].
 pub fn ransac_plane(
     points: &[Point],
+    rays: &[RayDiscount],
     params: &RansacParams,
     rng: &mut ChaCha8Rng,
 ) -> Option<(Plane, Vec<usize>)> {
@@ -108,9 +159,8 @@ pub fn ransac_plane(
             normal: n,
             offset: n.dot(&points[i].coords),
         };
-        let count = points
-            .iter()
-            .filter(|p| plane.distance(p).abs() <= t)
+        let count = (0..points.len())
+            .filter(|&i| plane_distance(&plane, points, rays, i) <= t)
             .count();
         if best.is_none_or(|(c, _)| count > c) {
             best = Some((count, plane));
@@ -121,11 +171,11 @@ pub fn ransac_plane(
     }
     let (_, plane) = best?;
     let inliers: Vec<usize> = (0..points.len())
-        .filter(|&i| plane.distance(&points[i]).abs() <= t)
+        .filter(|&i| plane_distance(&plane, points, rays, i) <= t)
         .collect();
     let refit = fit_plane(&inliers.iter().map(|&i| points[i]).collect::<Vec<_>>())?;
     let inliers: Vec<usize> = (0..points.len())
-        .filter(|&i| refit.distance(&points[i]).abs() <= t)
+        .filter(|&i| plane_distance(&refit, points, rays, i) <= t)
         .collect();
     Some((refit, inliers))
 }
@@ -167,6 +217,18 @@ pub struct Circle {
 }
 
 impl Circle {
+    /// The offset of `p` from the circle's nearest point (for a point on the axis, from the
+    /// ring's nearest point along the first of [`plane_basis`]'s directions), m.
+    pub fn offset(&self, p: &Point) -> Vector {
+        let d = p - self.center;
+        let h = d.dot(&self.normal);
+        let inplane = d - self.normal * h;
+        let along = inplane
+            .try_normalize(1e-15)
+            .unwrap_or_else(|| plane_basis(&self.normal).0);
+        d - along * self.radius
+    }
+
     /// Distance from `p` to the circle (the ring, not the disc), m.
     pub fn distance(&self, p: &Point) -> f64 {
         let d = p - self.center;
@@ -181,6 +243,7 @@ impl Circle {
 /// Gauss–Newton on the points' distances to the 3D circle. Returns it and its inliers.
 pub fn ransac_circle(
     points: &[Point],
+    rays: &[RayDiscount],
     plane: &Plane,
     r: f64,
     params: &RansacParams,
@@ -198,6 +261,24 @@ pub fn ransac_circle(
             Vector2::new(d.dot(&e1), d.dot(&e2))
         })
         .collect();
+    // Each ray's direction in the plane's basis and its discount: a point's offset from a
+    // circle in the plane is radial.
+    let flat_rays: Vec<(Vector2<f64>, f64)> = rays
+        .iter()
+        .map(|d| (Vector2::new(d.dir.dot(&e1), d.dir.dot(&e2)), d.k))
+        .collect();
+    let off = |i: usize, c: Vector2<f64>| -> f64 {
+        let q = flat[i] - c;
+        let n = q.norm();
+        let radial = (n - r).abs();
+        match flat_rays.get(i) {
+            Some((dir, k)) if n > 1e-15 => {
+                let along = dir.dot(&q) / n;
+                radial * (1.0 - k * along * along).max(0.0).sqrt()
+            }
+            _ => radial,
+        }
+    };
     let t = params.circle_threshold_m;
     let mut best: Option<(usize, Vector2<f64>)> = None;
     for _ in 0..params.iterations {
@@ -211,10 +292,7 @@ pub fn ransac_circle(
             continue;
         };
         for c in cs {
-            let count = flat
-                .iter()
-                .filter(|q| ((*q - c).norm() - r).abs() <= t)
-                .count();
+            let count = (0..flat.len()).filter(|&i| off(i, c) <= t).count();
             if best.is_none_or(|(n, _)| count > n) {
                 best = Some((count, c));
             }
@@ -229,7 +307,7 @@ pub fn ransac_circle(
         normal: plane.normal,
         radius: r,
     };
-    Some(refined_on_inliers(points, circle, t))
+    Some(refined_on_inliers(points, rays, circle, t))
 }
 
 /// RANSAC circle of radius `r` in space, with no plane first: hypotheses from the circle
@@ -241,6 +319,7 @@ pub fn ransac_circle(
 /// inliers, and many more points just off it.
 pub fn ransac_circle_free(
     points: &[Point],
+    rays: &[RayDiscount],
     r: f64,
     zone_m: f64,
     params: &RansacParams,
@@ -266,8 +345,8 @@ pub fn ransac_circle_free(
         }
         let k = Circle { radius: r, ..k };
         let (mut on, mut near) = (0usize, 0usize);
-        for q in points {
-            let d = k.distance(q);
+        for i in 0..points.len() {
+            let d = circle_distance(&k, points, rays, i);
             on += usize::from(d <= t);
             near += usize::from(d <= zone_m);
         }
@@ -278,21 +357,30 @@ pub fn ransac_circle_free(
         }
     }
     let (_, circle) = best?;
-    Some(refined_on_inliers(points, circle, t))
+    Some(refined_on_inliers(points, rays, circle, t))
 }
 
 /// A RANSAC circle refined twice on its inliers (the points within `t` of it, m), and the
 /// inliers of the refined circle.
-fn refined_on_inliers(points: &[Point], mut circle: Circle, t: f64) -> (Circle, Vec<usize>) {
+fn refined_on_inliers(
+    points: &[Point],
+    rays: &[RayDiscount],
+    mut circle: Circle,
+    t: f64,
+) -> (Circle, Vec<usize>) {
     let inliers_of = |c: &Circle| -> Vec<usize> {
         (0..points.len())
-            .filter(|&i| c.distance(&points[i]) <= t)
+            .filter(|&i| circle_distance(c, points, rays, i) <= t)
             .collect()
     };
     let mut inliers = inliers_of(&circle);
     for _ in 0..2 {
         let pts: Vec<Point> = inliers.iter().map(|&i| points[i]).collect();
-        circle = refine_circle(&pts, circle, 8);
+        let pts_rays: Vec<RayDiscount> = inliers
+            .iter()
+            .filter_map(|&i| rays.get(i).copied())
+            .collect();
+        circle = refine_circle(&pts, &pts_rays, circle, 8);
         inliers = inliers_of(&circle);
     }
     (circle, inliers)
@@ -316,12 +404,22 @@ pub fn circle_through(a: &Point, b: &Point, c: &Point) -> Option<Circle> {
 }
 
 /// Gauss–Newton on the centre (3) and the normal's tilt (2) of a circle of fixed radius,
-/// minimising the points' squared distances to it.
-pub fn refine_circle(points: &[Point], mut c: Circle, iterations: usize) -> Circle {
+/// minimising the points' squared distances to it (discounted along their rays where `rays`,
+/// empty or one for each point, says).
+pub fn refine_circle(
+    points: &[Point],
+    rays: &[RayDiscount],
+    mut c: Circle,
+    iterations: usize,
+) -> Circle {
     if points.len() < 5 {
         return c;
     }
-    let residuals = |c: &Circle| -> Vec<f64> { points.iter().map(|p| c.distance(p)).collect() };
+    let residuals = |c: &Circle| -> Vec<f64> {
+        (0..points.len())
+            .map(|i| circle_distance(c, points, rays, i))
+            .collect()
+    };
     for _ in 0..iterations {
         let (e1, e2) = plane_basis(&c.normal);
         let apply = |c: &Circle, x: &nalgebra::SVector<f64, 5>| Circle {
@@ -464,10 +562,10 @@ mod tests {
             ));
         }
         let params = RansacParams::default();
-        let (plane, _) = ransac_plane(&pts, &params, &mut rng).expect("a plane");
+        let (plane, _) = ransac_plane(&pts, &[], &params, &mut rng).expect("a plane");
         assert!(plane.normal.z.abs() > 0.99, "the glare's plane: {plane:?}");
         let (circle, inliers) =
-            ransac_circle_free(&pts, 0.012, 0.003, &params, 2000, &mut rng).expect("a circle");
+            ransac_circle_free(&pts, &[], 0.012, 0.003, &params, 2000, &mut rng).expect("a circle");
         assert!((circle.center - c).norm() < 3e-4, "{:?}", circle.center - c);
         assert!(circle.normal.cross(&n).norm() < 0.03, "{:?}", circle.normal);
         assert!(inliers.len() >= 95, "{}", inliers.len());
@@ -479,11 +577,12 @@ mod tests {
         let n = UnitQuaternion::from_euler_angles(0.3, -0.5, 1.0) * Vector::z();
         let pts = half_circle(c, n, 0.012, 200);
         let mut rng = ChaCha8Rng::seed_from_u64(1);
-        let (plane, inl) = ransac_plane(&pts, &RansacParams::default(), &mut rng).expect("plane");
+        let (plane, inl) =
+            ransac_plane(&pts, &[], &RansacParams::default(), &mut rng).expect("plane");
         assert_eq!(inl.len(), 200);
         assert!(plane.normal.cross(&n).norm() < 1e-9);
         let (circle, inl) =
-            ransac_circle(&pts, &plane, 0.012, &RansacParams::default(), &mut rng).expect("c");
+            ransac_circle(&pts, &[], &plane, 0.012, &RansacParams::default(), &mut rng).expect("c");
         assert_eq!(inl.len(), 200);
         assert!((circle.center - c).norm() < 1e-9, "{:?}", circle.center - c);
         let arc = arc_extent(&pts, &circle).expect("arc");
@@ -519,8 +618,8 @@ mod tests {
             );
         }
         let p = RansacParams::default();
-        let (plane, _) = ransac_plane(&pts, &p, &mut rng).expect("plane");
-        let (circle, inl) = ransac_circle(&pts, &plane, 0.012, &p, &mut rng).expect("circle");
+        let (plane, _) = ransac_plane(&pts, &[], &p, &mut rng).expect("plane");
+        let (circle, inl) = ransac_circle(&pts, &[], &plane, 0.012, &p, &mut rng).expect("circle");
         assert!(
             (circle.center - c).norm() < 0.0001,
             "{}",
@@ -531,9 +630,96 @@ mod tests {
     }
 
     #[test]
+    fn a_discounted_plane_distance_is_the_least_discounted_offset_to_the_plane() {
+        let plane = Plane {
+            normal: Vector::new(0.3, -0.2, 0.9).normalize(),
+            offset: -0.05,
+        };
+        let q = Point::new(0.01, 0.02, -0.04);
+        let h = plane.distance(&q);
+        // Along the ray, a quarter of the step counts (s = 0.25, k = 1 − s²).
+        let along = |dir: Vector| RayDiscount {
+            dir: dir.normalize(),
+            k: 1.0 - 0.25 * 0.25,
+        };
+        // The ray along the normal: the offset to the plane is all along it.
+        let d = along(plane.normal);
+        assert!((d.plane_distance(h, &plane.normal) - 0.25 * h.abs()).abs() < 1e-12);
+        // Across the normal: none of it is.
+        let d = along(plane.normal.cross(&Vector::x()));
+        assert!((d.plane_distance(h, &plane.normal) - h.abs()).abs() < 1e-12);
+        // Slanted: the least over offsets that reach the plane, searched on a grid of them.
+        let d = along(Vector::new(0.5, 0.1, 0.4));
+        let (e1, e2) = plane_basis(&plane.normal);
+        let foot = q - plane.normal * h;
+        let mut least = f64::INFINITY;
+        for i in -400..=400 {
+            for j in -400..=400 {
+                let x = foot + e1 * (f64::from(i) * 2e-5) + e2 * (f64::from(j) * 2e-5) - q;
+                least = least.min(d.length(&x));
+            }
+        }
+        let closed = d.plane_distance(h, &plane.normal);
+        assert!(closed <= least + 1e-9, "{closed} against {least}");
+        assert!(least - closed < 1e-6, "{closed} against {least}");
+        assert!(closed < h.abs());
+    }
+
+    #[test]
+    fn a_needle_whose_depth_is_coarse_holds_its_points_when_the_ray_is_discounted() {
+        // A narrow-baseline rig 0.18 m away whose disparity step there is 2 mm: each point
+        // of the needle is off along its own viewing ray by up to ±1.5 mm, and across it
+        // by 0.1 mm. Counted in full, the depth noise leaves few inliers and a tilted plane;
+        // discounted to a 0.5 mm step, the needle holds.
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let eye = Point::new(0.0, 0.0, 0.0);
+        let c = Point::new(0.01, -0.005, -0.18);
+        let n = Vector::new(0.1, 0.5, 0.8).normalize();
+        let s = 0.0005 / 0.002;
+        let (pts, rays): (Vec<Point>, Vec<RayDiscount>) = half_circle(c, n, 0.012, 300)
+            .into_iter()
+            .map(|p| {
+                let dir = (p - eye).normalize();
+                let across = Vector::new(rng.random(), rng.random(), rng.random()) * 1e-4;
+                let q = p + dir * rng.random_range(-0.0015..0.0015) + across;
+                let ray = RayDiscount {
+                    dir: (q - eye).normalize(),
+                    k: 1.0 - s * s,
+                };
+                (q, ray)
+            })
+            .unzip();
+        let p = RansacParams::default();
+        let fit_with = |rays: &[RayDiscount], rng: &mut ChaCha8Rng| {
+            let (plane, on) = ransac_plane(&pts, rays, &p, rng).expect("a plane");
+            let on_pts: Vec<Point> = on.iter().map(|&i| pts[i]).collect();
+            let on_rays: Vec<RayDiscount> =
+                on.iter().filter_map(|&i| rays.get(i).copied()).collect();
+            ransac_circle(&on_pts, &on_rays, &plane, 0.012, &p, rng).expect("a circle")
+        };
+        let (_, full_inliers) = fit_with(&[], &mut rng);
+        let (discounted, inliers) = fit_with(&rays, &mut rng);
+        assert!(
+            inliers.len() >= 270,
+            "{} of 300 points on the circle",
+            inliers.len()
+        );
+        assert!(
+            full_inliers.len() < 200,
+            "{} of 300 points on the circle counted in full",
+            full_inliers.len()
+        );
+        let off = (discounted.center - c).norm();
+        assert!(off < 0.0005, "the centre {off} m off");
+        assert!(discounted.normal.cross(&n).norm() < 3f64.to_radians().sin());
+    }
+
+    #[test]
     fn too_few_points_fit_nothing() {
         let mut rng = ChaCha8Rng::seed_from_u64(1);
-        assert!(ransac_plane(&[Point::origin()], &RansacParams::default(), &mut rng).is_none());
+        assert!(
+            ransac_plane(&[Point::origin()], &[], &RansacParams::default(), &mut rng).is_none()
+        );
         assert!(fit_plane(&[Point::origin(), Point::new(1.0, 0.0, 0.0)]).is_none());
     }
 }

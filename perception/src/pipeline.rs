@@ -49,6 +49,11 @@ pub struct PipelineParams {
     pub min_points: usize,
     /// RANSAC thresholds and iterations.
     pub ransac: RansacParams,
+    /// The rig's disparity step at the needle (depth² / (focal length × baseline)) that the
+    /// RANSAC thresholds and the share zone were made for, m: on a coarser rig a point's
+    /// offset along its own viewing ray counts for this share of the step
+    /// ([`fit::RayDiscount`]); 0 counts it in full on every rig.
+    pub depth_step_ref_m: f64,
     /// Hypotheses of the circle through three points, for a cloud whose plane and circle do
     /// not hold (most draws miss: the needle's points may be a fifth of the cloud).
     pub free_circle_iterations: usize,
@@ -135,6 +140,7 @@ impl Default for PipelineParams {
             max_points: 1500,
             min_points: 40,
             ransac: RansacParams::default(),
+            depth_step_ref_m: 0.0007,
             free_circle_iterations: 2000,
             min_inlier_share: 0.5,
             share_zone_m: 0.003,
@@ -890,18 +896,27 @@ impl NeedlePipeline {
     ) -> Result<Fitted, PerceptionError> {
         let p = &self.params;
         let r = self.needle.radius_m;
+        let rays = self.ray_discounts(cloud);
         let (plane, plane_inliers) =
-            fit::ransac_plane(cloud, &p.ransac, rng).ok_or_else(|| PerceptionError::BadFit {
-                why: "no plane through the points".into(),
+            fit::ransac_plane(cloud, &rays, &p.ransac, rng).ok_or_else(|| {
+                PerceptionError::BadFit {
+                    why: "no plane through the points".into(),
+                }
             })?;
         diag.plane_inliers = plane_inliers.len();
         let on_plane: Vec<Point> = plane_inliers.iter().map(|&i| cloud[i]).collect();
-        let (circle, inliers) = fit::ransac_circle(&on_plane, &plane, r, &p.ransac, rng)
-            .ok_or_else(|| PerceptionError::BadFit {
-                why: format!("no {:.1} mm circle through the points", r * 1e3),
-            })?;
-        let pts: Vec<Point> = inliers.iter().map(|&i| on_plane[i]).collect();
-        self.judge_cloud_circle(cloud, pts, circle, images, diag)
+        let plane_rays: Vec<fit::RayDiscount> = plane_inliers
+            .iter()
+            .filter_map(|&i| rays.get(i).copied())
+            .collect();
+        let (circle, inliers) =
+            fit::ransac_circle(&on_plane, &plane_rays, &plane, r, &p.ransac, rng).ok_or_else(
+                || PerceptionError::BadFit {
+                    why: format!("no {:.1} mm circle through the points", r * 1e3),
+                },
+            )?;
+        let pts: Vec<usize> = inliers.iter().map(|&i| plane_inliers[i]).collect();
+        self.judge_cloud_circle(cloud, &rays, pts, circle, images, diag)
     }
 
     /// The circle through the cloud with no plane first ([`fit::ransac_circle_free`]), judged
@@ -915,8 +930,10 @@ impl NeedlePipeline {
         diag: &mut Diagnostics,
     ) -> Result<Fitted, PerceptionError> {
         let p = &self.params;
+        let rays = self.ray_discounts(cloud);
         let (circle, inliers) = fit::ransac_circle_free(
             cloud,
+            &rays,
             self.needle.radius_m,
             p.share_zone_m,
             &p.ransac,
@@ -929,10 +946,9 @@ impl NeedlePipeline {
                 self.needle.radius_m * 1e3
             ),
         })?;
-        let pts: Vec<Point> = inliers.iter().map(|&i| cloud[i]).collect();
         // The cloud is cluttered (its plane did not hold the needle): only a circle both
         // views' masks hold is taken, not one the cloud's share test alone passes.
-        let f = self.judge_cloud_circle(cloud, pts, circle, images, diag)?;
+        let f = self.judge_cloud_circle(cloud, &rays, inliers, circle, images, diag)?;
         if diag.image_support.is_none() {
             return Err(PerceptionError::BadFit {
                 why: "the circle through the cloud with no plane first: the images do not hold it"
@@ -942,26 +958,66 @@ impl NeedlePipeline {
         Ok(f)
     }
 
-    /// A circle found in the cloud with its inliers `pts`: held if enough of the points near
-    /// it are on it, or moved onto the wire if both views' masks hold it there.
+    /// The cloud's points' [`fit::RayDiscount`]s, on a rig coarser in depth than
+    /// `depth_step_ref_m` at them (none where every point's step is within it).
+    fn ray_discounts(&self, cloud: &[Point]) -> Vec<fit::RayDiscount> {
+        if self.params.depth_step_ref_m <= 0.0 {
+            return Vec::new();
+        }
+        let rays: Vec<fit::RayDiscount> = cloud.iter().map(|q| self.ray_discount(q)).collect();
+        if rays.iter().all(|d| d.k <= 0.0) {
+            return Vec::new();
+        }
+        rays
+    }
+
+    /// The [`fit::RayDiscount`] at `q` (robot frame): its ray's part counts for
+    /// `depth_step_ref_m` over the rig's disparity step there, if that is less than one.
+    fn ray_discount(&self, q: &Point) -> fit::RayDiscount {
+        let c = &self.calibration;
+        let eye = Point::from(c.camera_to_robot.translation.vector);
+        let axis = c.camera_to_robot.rotation * Vector::z();
+        let to = q - eye;
+        let depth = to.dot(&axis);
+        let step = depth * depth / (c.fx * c.baseline_m);
+        let reference = self.params.depth_step_ref_m.max(0.0);
+        let s = if step > reference {
+            reference / step
+        } else {
+            1.0
+        };
+        fit::RayDiscount {
+            dir: to.try_normalize(1e-12).unwrap_or(axis),
+            k: 1.0 - s * s,
+        }
+    }
+
+    /// A circle found in the cloud with its inliers (indices into `cloud`): held if enough
+    /// of the points near it are on it, or moved onto the wire if both views' masks hold it
+    /// there. Distances discounted along the rays as `rays` say.
     fn judge_cloud_circle(
         &self,
         cloud: &[Point],
-        pts: Vec<Point>,
+        rays: &[fit::RayDiscount],
+        inliers: Vec<usize>,
         circle: Circle,
         images: &Images,
         diag: &mut Diagnostics,
     ) -> Result<Fitted, PerceptionError> {
         let p = &self.params;
+        let distance = |i: usize| match rays.get(i) {
+            Some(d) => d.length(&circle.offset(&cloud[i])),
+            None => circle.distance(&cloud[i]),
+        };
+        let pts: Vec<Point> = inliers.iter().map(|&i| cloud[i]).collect();
         diag.circle_inliers = pts.len();
-        diag.rms_m = (pts.iter().map(|q| circle.distance(q).powi(2)).sum::<f64>()
+        diag.rms_m = (inliers.iter().map(|&i| distance(i).powi(2)).sum::<f64>()
             / pts.len().max(1) as f64)
             .sqrt();
         // The share of the points near the circle that are on it: clutter beside the
         // needle (glints, a jaw's metal) counts against a fit, things farther off do not.
-        let near = cloud
-            .iter()
-            .filter(|q| circle.distance(q) <= p.share_zone_m)
+        let near = (0..cloud.len())
+            .filter(|&i| distance(i) <= p.share_zone_m)
             .count()
             .max(pts.len());
         let share = pts.len() as f64 / near as f64;
@@ -975,11 +1031,12 @@ impl NeedlePipeline {
         // from it: the silhouettes of a wire seen near edge-on, or beside a jaw or the
         // thread, can hold a tilted circle as well as the right one.
         let cloud_held = pts.len() >= p.min_points && share >= p.min_inlier_share;
+        let at_centre = self.ray_discount(&circle.center);
         let refined = tried.filter(|f| {
             f.support >= p.min_image_support
                 && !self.edge_on(&f.circle)
                 && !(cloud_held
-                    && ((f.circle.center - circle.center).norm() > p.image_max_shift_m
+                    && (at_centre.length(&(f.circle.center - circle.center)) > p.image_max_shift_m
                         || f.circle.normal.dot(&circle.normal).abs() < p.image_max_tilt_rad.cos()))
         });
         diag.image_support = refined.map(|f| f.support);
@@ -1331,9 +1388,9 @@ impl NeedlePipeline {
         // error of a few millimetres); then, if too little is seen for it, the circle
         // through the holes that the points fit best, the holes as soft constraints.
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
-        let free = fit::ransac_plane(&cloud, &p.ransac, &mut rng).and_then(|(plane, on)| {
+        let free = fit::ransac_plane(&cloud, &[], &p.ransac, &mut rng).and_then(|(plane, on)| {
             let pts: Vec<Point> = on.iter().map(|&i| cloud[i]).collect();
-            fit::ransac_circle(&pts, &plane, r, &p.ransac, &mut rng)
+            fit::ransac_circle(&pts, &[], &plane, r, &p.ransac, &mut rng)
                 .map(|(c, inl)| (c, inl.iter().map(|&i| pts[i]).collect::<Vec<_>>()))
         });
         let enough = |n: usize| {
@@ -1387,7 +1444,7 @@ impl NeedlePipeline {
                     with_holes.push(e);
                     with_holes.push(x);
                 }
-                (fit::refine_circle(&with_holes, circle, 8), inliers)
+                (fit::refine_circle(&with_holes, &[], circle, 8), inliers)
             }
         };
         let share = inliers.len() as f64 / cloud.len() as f64;

@@ -71,9 +71,9 @@ fn cloud(t: &Truth, lost_m: f64, noise_m: f64, rng: &mut ChaCha8Rng) -> Vec<Poin
 fn place(points: &[Point], t: &Truth, anchor: Anchor, seed: u64) -> (Point, Point, Point) {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let params = RansacParams::default();
-    let (plane, on) = fit::ransac_plane(points, &params, &mut rng).expect("plane");
+    let (plane, on) = fit::ransac_plane(points, &[], &params, &mut rng).expect("plane");
     let on: Vec<Point> = on.iter().map(|&i| points[i]).collect();
-    let (circle, inl) = fit::ransac_circle(&on, &plane, R, &params, &mut rng).expect("circle");
+    let (circle, inl) = fit::ransac_circle(&on, &[], &plane, R, &params, &mut rng).expect("circle");
     let pts: Vec<Point> = inl.iter().map(|&i| on[i]).collect();
     let arc = arc_extent(&pts, &circle).expect("arc");
     let (e1, e2) = plane_basis(&circle.normal);
