@@ -820,7 +820,22 @@ impl NeedlePipeline {
         // leaves the swage from behind the jaw that hides it.)
         let swage_cap = SWAGE_RADIUS_SCALE * self.needle.wire_diameter_m / 2.0 / r;
         let tip_i = if tip_is_lo { 0 } else { 1 };
-        let anchor = if full || !tip_like[tip_i] {
+        // An observed end with an instrument's dark steel round it may be where the tool
+        // hides the wire, not where the wire ends: the half circle does not sit on it while
+        // the other end is seen clear of tools; with both so hidden (and the arc short of a
+        // half circle, the tip not seen tapering) nothing says where it sits.
+        let by_tool = [lo_end, hi_end]
+            .map(|end| self.instrument_share(left, &at(end)) >= p.min_instrument_share);
+        let swage_by_tool = !full && !tip_like[tip_i] && by_tool[1 - tip_i];
+        if swage_by_tool && by_tool[tip_i] {
+            return Err(PerceptionError::AmbiguousEndpoints {
+                why: format!(
+                    "{:.0}° of the arc seen, an instrument at both its ends and the tip not seen tapering: where the needle's ends lie along it cannot be told",
+                    arc.extent.to_degrees()
+                ),
+            });
+        }
+        let anchor = if full || (!tip_like[tip_i] && !swage_by_tool) {
             Anchor::Swage
         } else {
             let (end, inward) = if tip_is_lo {
