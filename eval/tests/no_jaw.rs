@@ -152,9 +152,9 @@ fn an_end_the_left_view_cannot_read_is_read_in_the_right() {
 /// Pairs of the independent set (seed 2) where a tool's black shaft hides the wire by the
 /// swage and the arc seen stops at the shaft: the half circle was set on that end, as if it
 /// were the swage's (pair 45 full frame: 5.7 mm off; pair 131 with its jaw known, the
-/// shaft at both ends of the arc: 13 mm off). An end with an instrument round it is not
-/// taken for the needle's end: pair 45 is set on its tip's end, seen clear of tools (within a
-/// millimetre and 5°), and pair 131 is refused.
+/// shaft at both ends of the arc: 13 mm off). An end where the wire runs into an
+/// instrument's steel is not taken for the needle's end: pair 45 is set on its tip's end,
+/// seen clear of tools (within a millimetre and 5°), and pair 131 is refused.
 #[test]
 fn an_end_hidden_by_a_tool_is_not_taken_for_the_needles_end() {
     found_full_frame(&[45], true);
@@ -165,7 +165,7 @@ fn an_end_hidden_by_a_tool_is_not_taken_for_the_needles_end() {
     assert!(s.jaw.is_some(), "pair 131: a jaw in view");
     match p.estimate(&left, &right, s.jaw.as_ref(), 2 ^ 131) {
         Err(stitch_perception::PerceptionError::AmbiguousEndpoints { why }) => {
-            assert!(why.contains("instrument at both"), "{why}");
+            assert!(why.contains("past both its ends"), "{why}");
         }
         other => panic!("pair 131: {other:?}"),
     }

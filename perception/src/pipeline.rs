@@ -820,17 +820,17 @@ impl NeedlePipeline {
         // leaves the swage from behind the jaw that hides it.)
         let swage_cap = SWAGE_RADIUS_SCALE * self.needle.wire_diameter_m / 2.0 / r;
         let tip_i = if tip_is_lo { 0 } else { 1 };
-        // An observed end with an instrument's dark steel round it may be where the tool
-        // hides the wire, not where the wire ends: the half circle does not sit on it while
-        // the other end is seen clear of tools; with both so hidden (and the arc short of a
-        // half circle, the tip not seen tapering) nothing says where it sits.
-        let by_tool = [lo_end, hi_end]
-            .map(|end| self.instrument_share(left, &at(end)) >= p.min_instrument_share);
+        // An observed end where the wire runs into an instrument's dark steel is where the
+        // tool hides it, not where it ends: the half circle does not sit on it while the
+        // other end is seen clear; where the wire runs into steel at both ends (the arc
+        // short of a half circle, the tip not seen tapering) nothing says where it sits.
+        let by_tool = [(lo_end, -1.0), (hi_end, 1.0)]
+            .map(|(end, outward)| self.runs_into_tool(left, &circle, end, outward));
         let swage_by_tool = !full && !tip_like[tip_i] && by_tool[1 - tip_i];
         if swage_by_tool && by_tool[tip_i] {
             return Err(PerceptionError::AmbiguousEndpoints {
                 why: format!(
-                    "{:.0}° of the arc seen, an instrument at both its ends and the tip not seen tapering: where the needle's ends lie along it cannot be told",
+                    "{:.0}° of the arc seen, the wire running into an instrument's steel past both its ends and the tip not seen tapering: where the needle's ends lie along it cannot be told",
                     arc.extent.to_degrees()
                 ),
             });
@@ -1558,6 +1558,37 @@ impl NeedlePipeline {
         };
         let z = (c.camera_to_robot.inverse() * p).z;
         dark_grey_share(left, u, v, (c.fx * self.params.swage_search_m / z).max(2.0))
+    }
+
+    /// Whether the wire seen to end at `end` (rad on `circle`) runs into an instrument: past
+    /// it along the circle (`outward` +1 or −1, the direction of increasing or decreasing
+    /// angle), at two or more of 0.5, 1 and 1.5 mm, half or more of the left image's pixels
+    /// within a wire's width are dark grey ([`dark_grey_share`]). A tool beside an end that
+    /// the wire passes clear of does not hide it.
+    fn runs_into_tool(
+        &self,
+        left: &stitch_robot::RgbImage,
+        circle: &Circle,
+        end: f64,
+        outward: f64,
+    ) -> bool {
+        let c = &self.calibration;
+        let (e1, e2) = plane_basis(&circle.normal);
+        let r = circle.radius;
+        let dark = [0.5e-3, 1.0e-3, 1.5e-3]
+            .iter()
+            .filter(|&&m| {
+                let a = end + outward * m / r;
+                let q = circle.center + (e1 * a.cos() + e2 * a.sin()) * r;
+                let Some([u, v]) = c.left_pixel(&q) else {
+                    return false;
+                };
+                let z = (c.camera_to_robot.inverse() * q).z;
+                let rad = (c.fx * self.needle.wire_diameter_m / z).max(1.5);
+                dark_grey_share(left, u, v, rad) >= 0.5
+            })
+            .count();
+        dark >= 2
     }
 
     /// Thread pixels in the left view within `swage_search_m` of a robot-frame end of the
