@@ -1552,12 +1552,19 @@ impl NeedlePipeline {
     /// The share of the left image's pixels within `swage_search_m` of a robot-frame point
     /// that are dark grey ([`dark_grey_share`]); 0 if it is not in view.
     fn instrument_share(&self, left: &stitch_robot::RgbImage, p: &Point) -> f64 {
-        let c = &self.calibration;
-        let Some([u, v]) = c.left_pixel(p) else {
+        let Some(([u, v], rad)) = self.left_disc(p, self.params.swage_search_m, 2.0) else {
             return 0.0;
         };
+        dark_grey_share(left, u, v, rad)
+    }
+
+    /// Where a robot-frame point falls in the left view (pixels), and how many pixels a
+    /// distance of `radius_m` spans there (at least `least_px`); `None` if it is not in view.
+    fn left_disc(&self, p: &Point, radius_m: f64, least_px: f64) -> Option<([f64; 2], f64)> {
+        let c = &self.calibration;
+        let uv = c.left_pixel(p)?;
         let z = (c.camera_to_robot.inverse() * p).z;
-        dark_grey_share(left, u, v, (c.fx * self.params.swage_search_m / z).max(2.0))
+        Some((uv, (c.fx * radius_m / z).max(least_px)))
     }
 
     /// Whether the wire seen to end at `end` (rad on `circle`) runs into an instrument: past
@@ -1572,7 +1579,6 @@ impl NeedlePipeline {
         end: f64,
         outward: f64,
     ) -> bool {
-        let c = &self.calibration;
         let (e1, e2) = plane_basis(&circle.normal);
         let r = circle.radius;
         let dark = [0.5e-3, 1.0e-3, 1.5e-3]
@@ -1580,12 +1586,8 @@ impl NeedlePipeline {
             .filter(|&&m| {
                 let a = end + outward * m / r;
                 let q = circle.center + (e1 * a.cos() + e2 * a.sin()) * r;
-                let Some([u, v]) = c.left_pixel(&q) else {
-                    return false;
-                };
-                let z = (c.camera_to_robot.inverse() * q).z;
-                let rad = (c.fx * self.needle.wire_diameter_m / z).max(1.5);
-                dark_grey_share(left, u, v, rad) >= 0.5
+                self.left_disc(&q, self.needle.wire_diameter_m, 1.5)
+                    .is_some_and(|([u, v], rad)| dark_grey_share(left, u, v, rad) >= 0.5)
             })
             .count();
         dark >= 2
@@ -1595,15 +1597,13 @@ impl NeedlePipeline {
     /// wire, on its `outward` side (the direction past the end along the circle); of all the
     /// thread there, or only of the pieces that do not pass by ([`Strands`]).
     fn thread_near(&self, masks: &Masks, p: &Point, outward: &Vector, strands: Strands) -> usize {
-        let c = &self.calibration;
-        let (Some([u, v]), Some([ou, ov])) = (
-            c.left_pixel(p),
-            c.left_pixel(&(p + outward * self.params.swage_search_m)),
+        let (Some(([u, v], rad)), Some([ou, ov])) = (
+            self.left_disc(p, self.params.swage_search_m, 2.0),
+            self.calibration
+                .left_pixel(&(p + outward * self.params.swage_search_m)),
         ) else {
             return 0;
         };
-        let z = (c.camera_to_robot.inverse() * p).z;
-        let rad = (c.fx * self.params.swage_search_m / z).max(2.0);
         // The thread leaves the swage from its end: pixels more than a fifth of the radius
         // back along the wire are a thread lying across the needle, not leaving it.
         let len = (ou - u).hypot(ov - v).max(1e-9);
