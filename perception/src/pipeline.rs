@@ -50,9 +50,9 @@ pub struct PipelineParams {
     /// RANSAC thresholds and iterations.
     pub ransac: RansacParams,
     /// The rig's disparity step at the needle (depth² / (focal length × baseline)) that the
-    /// RANSAC thresholds and the share zone were made for, m: on a coarser rig a point's
-    /// offset along its own viewing ray counts for this share of the step
-    /// ([`fit::RayDiscount`]); 0 counts it in full on every rig.
+    /// RANSAC thresholds and the share zone were made for, m: where a rig's step at a point
+    /// is coarser, the point's offset along its own viewing ray is scaled by this over that
+    /// step ([`fit::RayDiscount`]); 0 counts it in full on every rig.
     pub depth_step_ref_m: f64,
     /// Hypotheses of the circle through three points, for a cloud whose plane and circle do
     /// not hold (most draws miss: the needle's points may be a fifth of the cloud).
