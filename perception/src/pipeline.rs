@@ -661,6 +661,7 @@ impl NeedlePipeline {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let r = self.needle.radius_m;
         let images = Images::new(c, &lm, &rm, self.needle.wire_diameter_m);
+        let rays = self.ray_discounts(&cloud);
         // From the cloud (its plane, then the circle in it); if that cannot be fitted, from
         // the silhouettes alone; then from the cloud with no plane first (its own draws).
         // The first whose arc a half-circle needle can be placed on is the answer, else the
@@ -672,7 +673,7 @@ impl NeedlePipeline {
             diag.from_silhouettes = false;
             diag.free_circle = attempt == 2;
             let f = match attempt {
-                0 => self.fit_cloud(&cloud, &images, &mut rng, &mut diag),
+                0 => self.fit_cloud(&cloud, &rays, &images, &mut rng, &mut diag),
                 1 => self
                     .fit_silhouettes(&images, &mut rng, &mut diag)
                     .ok_or_else(|| PerceptionError::BadFit {
@@ -680,7 +681,7 @@ impl NeedlePipeline {
                     }),
                 _ => {
                     let mut own = ChaCha8Rng::seed_from_u64(seed ^ FREE_CIRCLE_SEED);
-                    self.fit_cloud_free(&cloud, &images, &mut own, &mut diag)
+                    self.fit_cloud_free(&cloud, &rays, &images, &mut own, &mut diag)
                 }
             };
             // A circle the cloud holds with too short an arc is the answer (a failure): the
@@ -736,19 +737,19 @@ impl NeedlePipeline {
         let mut threads = thread_at(Strands::All);
         // The tip tapers: the wire's width in the image near an end against its width 3 mm
         // along, for each observed end (the direction along the arc into the needle).
-        let step = 0.001 / r;
-        let taper = [
-            self.width_ratio((&lm, false), &circle, lo_end, step),
-            self.width_ratio((&lm, false), &circle, hi_end, -step),
-        ];
         // An end far wider than wire or swage with an instrument's steel round it is a jaw
-        // merged with the wire: its width says nothing of a taper.
-        let taper = [(0, lo_end), (1, hi_end)].map(|(i, end)| {
-            taper[i].filter(|&t| {
-                t <= p.max_end_width_ratio
-                    || self.instrument_share(left, &at(end)) < p.min_instrument_share
+        // merged with the wire: its width says nothing of a taper. `view`: a view's masks,
+        // and whether they are the right view's.
+        let step = 0.001 / r;
+        let taper_in = |view: (&Masks, bool)| {
+            [(lo_end, step), (hi_end, -step)].map(|(end, inward)| {
+                self.width_ratio(view, &circle, end, inward).filter(|&t| {
+                    t <= p.max_end_width_ratio
+                        || self.instrument_share(left, &at(end)) < p.min_instrument_share
+                })
             })
-        });
+        };
+        let taper = taper_in((&lm, false));
         diag.taper = taper;
         let tip_like = taper.map(|t| t.is_some_and(|t| t > 0.2 && t < p.tip_taper_ratio));
         // A known jaw decides: the end it holds the needle nearer to (if clearly nearer).
@@ -783,13 +784,7 @@ impl NeedlePipeline {
             // mask may lose or add a pixel there. The right view's taper, read the same way,
             // decides if it tells the ends apart by itself, the left view's taper leans the
             // same way (the narrower end the tip) and the thread does not say otherwise.
-            let right_taper = [(lo_end, step), (hi_end, -step)].map(|(end, inward)| {
-                self.width_ratio((&rm, true), &circle, end, inward)
-                    .filter(|&t| {
-                        t <= p.max_end_width_ratio
-                            || self.instrument_share(left, &at(end)) < p.min_instrument_share
-                    })
-            });
+            let right_taper = taper_in((&rm, true));
             if let Some(lo_is_tip) = tip_is_low_end([0, 0], right_taper, 0, p) {
                 let leans = match taper {
                     [Some(lo), Some(hi)] => (lo < hi) == lo_is_tip,
@@ -901,19 +896,19 @@ impl NeedlePipeline {
 
     /// The circle from the cloud (RANSAC plane, then circle of the needle's radius),
     /// refined against both views' masks; the images decide if they hold it, the cloud's
-    /// share test otherwise.
+    /// share test otherwise. `rays`: the cloud's [`Self::ray_discounts`].
     fn fit_cloud(
         &self,
         cloud: &[Point],
+        rays: &[fit::RayDiscount],
         images: &Images,
         rng: &mut ChaCha8Rng,
         diag: &mut Diagnostics,
     ) -> Result<Fitted, PerceptionError> {
         let p = &self.params;
         let r = self.needle.radius_m;
-        let rays = self.ray_discounts(cloud);
         let (plane, plane_inliers) =
-            fit::ransac_plane(cloud, &rays, &p.ransac, rng).ok_or_else(|| {
+            fit::ransac_plane(cloud, rays, &p.ransac, rng).ok_or_else(|| {
                 PerceptionError::BadFit {
                     why: "no plane through the points".into(),
                 }
@@ -931,7 +926,7 @@ impl NeedlePipeline {
                 },
             )?;
         let pts: Vec<usize> = inliers.iter().map(|&i| plane_inliers[i]).collect();
-        self.judge_cloud_circle(cloud, &rays, pts, circle, images, diag)
+        self.judge_cloud_circle(cloud, rays, pts, circle, images, diag)
     }
 
     /// The circle through the cloud with no plane first ([`fit::ransac_circle_free`]), judged
@@ -940,15 +935,15 @@ impl NeedlePipeline {
     fn fit_cloud_free(
         &self,
         cloud: &[Point],
+        rays: &[fit::RayDiscount],
         images: &Images,
         rng: &mut ChaCha8Rng,
         diag: &mut Diagnostics,
     ) -> Result<Fitted, PerceptionError> {
         let p = &self.params;
-        let rays = self.ray_discounts(cloud);
         let (circle, inliers) = fit::ransac_circle_free(
             cloud,
-            &rays,
+            rays,
             self.needle.radius_m,
             p.share_zone_m,
             &p.ransac,
@@ -963,7 +958,7 @@ impl NeedlePipeline {
         })?;
         // The cloud is cluttered (its plane did not hold the needle): only a circle both
         // views' masks hold is taken, not one the cloud's share test alone passes.
-        let f = self.judge_cloud_circle(cloud, &rays, inliers, circle, images, diag)?;
+        let f = self.judge_cloud_circle(cloud, rays, inliers, circle, images, diag)?;
         if diag.image_support.is_none() {
             return Err(PerceptionError::BadFit {
                 why: "the circle through the cloud with no plane first: the images do not hold it"
