@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Train the needle-and-thread U-Net that `--segmenter onnx` runs, and export it to ONNX.
 
-A developer step, not a CI or user step (PyTorch on CPU: `pip install torch onnx pillow numpy`).
+A developer step, not a CI or user step (PyTorch on CPU: `pip install torch onnx pillow numpy scipy`).
 The frames come from `stitch perceive dataset --set training` (the mock's renderer under
 randomised cameras); this script randomises them further (tissue colour and texture, glare,
 shadows, needle and thread colour, light, defocus, noise, scale, orientation) so the net
@@ -12,6 +12,10 @@ no training setting made: `stitch bench segmentation` (the independent ray trace
     python perception/models/train.py --data /tmp/seg/train --steps 4000 --out perception/models
     python perception/models/train.py --data /tmp/seg/train --steps 6000 --arch half \
         --name needle_thread_unet_fast --out perception/models
+
+`--scenes shadows,streaks,vessels,dim` adds effects the mock does not draw (scene_effects); tried
+on 2026-12-07, they did not lift the needle's IoU on the independent crops, and the committed
+models are trained without them (docs/perception.md, "How the committed model was made").
 
 writes NAME.onnx (one file, weights inside; needle_thread_unet by default), the reference the
 Rust tests compare against (reference/input.png and reference/NAME-logits.bin: this script's
@@ -35,7 +39,8 @@ import numpy as np
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
-from PIL import Image
+from PIL import Image, ImageDraw
+from scipy import ndimage as ndi
 
 NEEDLE, THREAD = 1, 2
 
@@ -134,7 +139,45 @@ def texture(rng, h, w):
     return a[None, None] * (1 - n[..., None]) + b[None, None] * n[..., None]
 
 
-def augment(rng, img, lab, size):
+def scene_effects(rng, img, lab, scenes):
+    """What the mock's renderer does not draw (`--scenes`): shadows cast by the needle, thread
+    and instrument on the tissue (and by the instrument on the needle), highlights running
+    along the instrument's round fingers, and thin dark vessels in the tissue (`dim`, a needle lit
+    unevenly, is applied in `augment` with the needle's own colour change)."""
+    h, w = lab.shape
+    bg = lab == 0
+    objects = lab != 0
+    if "shadows" in scenes and objects.any() and rng.random() < 0.5:
+        dy, dx = (int(v) for v in rng.integers(-25, 26, 2))
+        shadow = np.zeros((h, w), np.float32)
+        src = objects[max(0, -dy):h - max(0, dy), max(0, -dx):w - max(0, dx)]
+        shadow[max(0, dy):max(0, dy) + src.shape[0], max(0, dx):max(0, dx) + src.shape[1]] = src
+        shadow = ndi.gaussian_filter(shadow, rng.uniform(0.5, 4.0))
+        dark = 1 - rng.uniform(0.25, 0.7) * shadow[..., None]
+        onto = bg | ((lab == NEEDLE) & (rng.random() < 0.3))
+        img[onto] = (img * dark)[onto]
+    tool = lab == 3
+    if "streaks" in scenes and tool.any() and rng.random() < 0.5:
+        d = ndi.distance_transform_edt(tool)
+        a, width = rng.uniform(1.0, 6.0), rng.uniform(0.8, 3.0)
+        streak = np.exp(-((d - a) / width) ** 2) * tool
+        gain = rng.uniform(0.4, 1.0) * (0.5 + 0.5 * smooth_noise(rng, h, w, int(rng.integers(2, 10))))
+        img = np.clip(img + (streak * gain)[..., None], 0, 1)
+    if "vessels" in scenes and bg.any() and rng.random() < 0.4:
+        vessel = Image.new("L", (w, h), 0)
+        draw = ImageDraw.Draw(vessel)
+        for _ in range(int(rng.integers(1, 6))):
+            p = rng.uniform(0, 1, (3, 2)) * (w, h)
+            t = np.linspace(0, 1, 30)[:, None]
+            curve = (1 - t) ** 2 * p[0] + 2 * t * (1 - t) * p[1] + t**2 * p[2]
+            draw.line([tuple(q) for q in curve], fill=255, width=int(rng.integers(1, 4)))
+        v = ndi.gaussian_filter(np.asarray(vessel, np.float32) / 255, 0.7)
+        dark = 1 - rng.uniform(0.2, 0.6) * v[..., None]
+        img[bg] = (img * dark)[bg]
+    return img
+
+
+def augment(rng, img, lab, size, scenes=()):
     img = img.copy()
     h, w = lab.shape
     bg = lab == 0
@@ -164,12 +207,21 @@ def augment(rng, img, lab, size):
         r = rng.uniform(0.3, 1.2) * max(h, w)
         band = np.abs(np.hypot(xx - cx, yy - cy) - r) < rng.uniform(1.5, 6)
         img[band & bg] *= rng.uniform(0.2, 0.6)
+    if scenes:
+        img = scene_effects(rng, img, lab, scenes)
     # The needle: brighter or duller, tinted by what it reflects.
     nd = lab == NEEDLE
     if nd.any():
         tint = img[bg].mean(0) if bg.any() else np.ones(3, np.float32)
         m = rng.uniform(0.0, 0.35)
         img[nd] = np.clip(img[nd] * rng.uniform(0.65, 1.3) * (1 - m) + tint * m * 1.2, 0, 1)
+        if "dim" in scenes and rng.random() < 0.5:
+            # Lit unevenly along its length: dimmer stretches that mirror the tissue.
+            f = smooth_noise(rng, h, w, int(rng.integers(2, 8)))[..., None]
+            dim = rng.uniform(0.3, 0.8)
+            mix = f * rng.uniform(0.3, 0.7)
+            lit = img * (dim + (1 - dim) * f)
+            img[nd] = np.clip(lit * (1 - mix) + tint[None, None] * mix, 0, 1)[nd]
     # The thread: another violet.
     th = lab == THREAD
     if th.any():
@@ -291,7 +343,13 @@ def main():
     ap.add_argument("--name", default="needle_thread_unet",
                     help="the model's file name, without .onnx (needle_thread_unet_fast: the fast one)")
     ap.add_argument("--channels", help="channels per scale, e.g. 16,32,48 (the architecture's own by default)")
+    ap.add_argument("--scenes", default="",
+                    help="comma-separated extra effects: shadows, streaks, vessels, dim (scene_effects)")
     a = ap.parse_args()
+    scenes = tuple(filter(None, a.scenes.split(",")))
+    unknown = set(scenes) - {"shadows", "streaks", "vessels", "dim"}
+    if unknown:
+        raise SystemExit(f"--scenes: unknown effect(s) {', '.join(sorted(unknown))} (shadows, streaks, vessels, dim)")
     torch.manual_seed(a.seed)
     torch.set_num_threads(a.threads)
     rng = np.random.default_rng(a.seed)
@@ -303,7 +361,7 @@ def main():
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=3e-3, total_steps=a.steps, pct_start=0.1)
     t0 = time.time()
     for step in range(1, a.steps + 1):
-        batch = [augment(rng, *items[rng.integers(len(items))], a.size) for _ in range(a.batch)]
+        batch = [augment(rng, *items[rng.integers(len(items))], a.size, scenes) for _ in range(a.batch)]
         x = torch.stack([b[0] for b in batch])
         y = torch.stack([b[1] for b in batch])
         loss = loss_fn(model(x), targets(y))
