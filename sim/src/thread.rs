@@ -65,6 +65,9 @@ pub struct ThreadConfig {
     /// PBD iterations every 1.5 mm of a tool's travel (modelling choice: 2; 15 when a
     /// motion ends).
     pub iterations: u32,
+    /// How many stitches a pull can draw thread through: slack in a loop behind more
+    /// stitches than this stays there, held by the tissue's friction along their paths.
+    pub slides_through: u32,
 }
 
 impl Default for ThreadConfig {
@@ -78,6 +81,7 @@ impl Default for ThreadConfig {
             friction: 0.8,
             slack_fall_m: 0.02,
             iterations: 2,
+            slides_through: 1000,
         }
     }
 }
@@ -119,6 +123,13 @@ impl ThreadConfig {
         }
         if !(1..=100).contains(&self.iterations) {
             return bad("iterations", f64::from(self.iterations), "1 to 100");
+        }
+        if self.slides_through == 0 {
+            return bad(
+                "slides_through",
+                f64::from(self.slides_through),
+                "at least 1 stitch",
+            );
         }
         Ok(())
     }
@@ -840,8 +851,12 @@ impl Thread {
     /// how many it got.
     fn take_slack(&mut self, links: usize) -> usize {
         let seg = self.config.segment_m;
+        // The newest finished stitch's loop lies behind that stitch, and behind the open
+        // loop's stitch too when there is one.
+        let behind = usize::from(self.open_loop.is_some());
+        let reach = (self.config.slides_through as usize).saturating_sub(behind);
         let mut got = 0;
-        for st in self.stitches.iter_mut().rev() {
+        for st in self.stitches.iter_mut().rev().take(reach) {
             if got == links {
                 break;
             }
@@ -1211,6 +1226,56 @@ mod tests {
         assert!((t.total_m() - total).abs() < 1e-9, "conserved");
     }
 
+    /// Two stitches, the tail's slack left behind the first, then the needle pulled 12 cm
+    /// away: what the pull could draw, and the thread.
+    fn two_stitches_then_pull(slides_through: u32) -> Thread {
+        let mut rng = crate::Streams::new(1).rng(crate::Subsystem::Thread);
+        let mut t = thread(0.3);
+        t.config.slides_through = slides_through;
+        t.on_insertion(Point::new(-0.01, 0.0, -0.11), &mut rng);
+        let total = t.total_m();
+        t.on_extraction(
+            Point::new(-0.005, 0.0, -0.12),
+            Point::new(0.005, 0.0, -0.12),
+            0.01,
+            Point::new(0.02, 0.0, -0.11),
+        );
+        t.on_insertion(Point::new(-0.01, 0.006, -0.11), &mut rng);
+        t.on_extraction(
+            Point::new(-0.005, 0.006, -0.12),
+            Point::new(0.005, 0.006, -0.12),
+            0.01,
+            Point::new(0.02, 0.006, -0.11),
+        );
+        assert_eq!(t.stitches.len(), 1);
+        assert!(
+            t.stitches[0].loop_m - t.stitches[0].taut_m > 0.2,
+            "the tail keeps its slack behind the first stitch: {:?}",
+            t.stitches[0]
+        );
+        for k in 1..=120 {
+            t.follow(Point::new(0.02 + 0.001 * f64::from(k), 0.006, -0.11), &[]);
+        }
+        assert!((t.total_m() - total).abs() < 1e-9, "conserved");
+        t
+    }
+
+    #[test]
+    fn slack_behind_more_stitches_than_a_pull_slides_through_stays_there() {
+        let free = two_stitches_then_pull(1000);
+        assert!(!free.short, "the tail slides through both stitches");
+        let held = two_stitches_then_pull(1);
+        assert!(held.short, "the tail's slack is behind two stitches");
+        assert!(
+            held.stitches[0].loop_m > free.stitches[0].loop_m + 0.1,
+            "{} against {} m left in the tail",
+            held.stitches[0].loop_m,
+            free.stitches[0].loop_m
+        );
+        let two = two_stitches_then_pull(2);
+        assert!(!two.short, "two stitches reach the tail");
+    }
+
     #[test]
     fn a_taut_loop_gives_nothing_and_the_thread_runs_short() {
         let mut rng = crate::Streams::new(1).rng(crate::Subsystem::Thread);
@@ -1249,6 +1314,10 @@ mod tests {
         for c in [
             ThreadConfig {
                 friction: -1.0,
+                ..ThreadConfig::default()
+            },
+            ThreadConfig {
+                slides_through: 0,
                 ..ThreadConfig::default()
             },
             ThreadConfig {
