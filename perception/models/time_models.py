@@ -61,6 +61,7 @@ def shapes():
     variants = [("unet", c) for c in [(8, 16, 32, 48), (8, 12, 24, 48), (6, 12, 24, 48),
                                       (8, 16, 24, 32), (4, 16, 32, 48)]]
     variants += [("half", c) for c in [(16, 32, 48), (16, 32, 64), (24, 32, 48)]]
+    variants += [("half-refine", (16, 32, 48))]
     with tempfile.TemporaryDirectory() as d:
         for arch, c in variants:
             model = train.ARCHS[arch](c)

@@ -62,7 +62,7 @@ class UNet(nn.Module):
     and learns to place a two-pixel thread between its cells. Either way the input's sides
     must be multiples of 8 (three halvings)."""
 
-    def __init__(self, c=(8, 16, 32, 48), half=False):
+    def __init__(self, c=(8, 16, 32, 48), half=False, refine=0):
         super().__init__()
         self.half = half
         n = len(c)
@@ -77,6 +77,12 @@ class UNet(nn.Module):
             dec.append(conv(c[i - 1], c[i - 1]))
         self.lat, self.dec = nn.ModuleList(lat), nn.ModuleList(dec)
         self.head = nn.Conv2d(c[0], 2, 1)
+        # From half resolution, `refine` > 0 adds a full-resolution step after the bilinear
+        # upsampling: the image and the upsampled logits, one 3x3 convolution of `refine`
+        # channels and a 1x1 to two, added to the logits (edges placed on the image's own
+        # pixels rather than between half-resolution cells).
+        self.refine = (
+            nn.Sequential(conv(5, refine), nn.Conv2d(refine, 2, 1)) if half and refine else None)
 
     def forward(self, x):
         skips = [self.e0(x)]
@@ -89,10 +95,13 @@ class UNet(nn.Module):
         y = self.head(y)
         if self.half:
             y = F.interpolate(y, scale_factor=2.0, mode="bilinear", align_corners=False)
+            if self.refine is not None:
+                y = y + self.refine(torch.cat([x, y], 1))
         return y
 
 
-ARCHS = {"unet": UNet, "half": lambda c=(16, 32, 48): UNet(c, half=True)}
+ARCHS = {"unet": UNet, "half": lambda c=(16, 32, 48): UNet(c, half=True),
+         "half-refine": lambda c=(16, 32, 48): UNet(c, half=True, refine=8)}
 
 
 def load(folder):
