@@ -61,7 +61,7 @@ def shapes():
     variants = [("unet", c) for c in [(8, 16, 32, 48), (8, 12, 24, 48), (6, 12, 24, 48),
                                       (8, 16, 24, 32), (4, 16, 32, 48)]]
     variants += [("half", c) for c in [(16, 32, 48), (16, 32, 64), (24, 32, 48)]]
-    variants += [("half-refine", (16, 32, 48))]
+    variants += [(a, (16, 32, 48)) for a in ["half-refine", "half-shuffle", "half-shuffle3"]]
     with tempfile.TemporaryDirectory() as d:
         for arch, c in variants:
             model = train.ARCHS[arch](c)

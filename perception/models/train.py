@@ -10,8 +10,8 @@ no training setting made: `stitch bench segmentation` (the independent ray trace
 
     stitch perceive dataset --set training --frames 700 --seed 7 --out /tmp/seg/train
     python perception/models/train.py --data /tmp/seg/train --steps 4000 --out perception/models
-    python perception/models/train.py --data /tmp/seg/train --steps 6000 --arch half \
-        --name needle_thread_unet_fast --out perception/models
+    python perception/models/train.py --data /tmp/seg/train --steps 6000 --arch half-shuffle3 \
+        --threads 1 --name needle_thread_unet_fast --out perception/models
 
 `--scenes shadows,streaks,vessels,dim` adds effects the mock does not draw (scene_effects); tried
 on 2026-12-07, they did not lift the needle's IoU on the independent crops, and the committed
@@ -56,15 +56,17 @@ class UNet(nn.Module):
     few hundred multiply-adds a pixel there, where a thin wire needs it. `half=True` (the
     fast one's, 16, 32, 48): the first convolution has stride 2 (it still sees every pixel),
     so the scales are 1/2, 1/4 and 1/8, and the logits are brought back to the input's size
-    bilinearly inside the model. At full resolution the first net's 8-channel convolutions,
+    inside the model: bilinearly, or (`shuffle`, the committed fast model's: a 3x3 head) by a
+    pixel shuffle. At full resolution the first net's 8-channel convolutions,
     its skip and its head took half its time (ONNX Runtime's profile, one thread, 256 x 256:
     3.6 of 7.8 ms); from half resolution it runs in about half the time with as many weights,
     and learns to place a two-pixel thread between its cells. Either way the input's sides
     must be multiples of 8 (three halvings)."""
 
-    def __init__(self, c=(8, 16, 32, 48), half=False, refine=0):
+    def __init__(self, c=(8, 16, 32, 48), half=False, refine=0, shuffle=0):
         super().__init__()
         self.half = half
+        self.shuffle = shuffle
         n = len(c)
         self.e0 = conv(3, c[0], 2 if half else 1)
         self.down = nn.ModuleList(
@@ -76,7 +78,11 @@ class UNet(nn.Module):
             lat.append(nn.Conv2d(c[i], c[i - 1], 1))
             dec.append(conv(c[i - 1], c[i - 1]))
         self.lat, self.dec = nn.ModuleList(lat), nn.ModuleList(dec)
-        self.head = nn.Conv2d(c[0], 2, 1)
+        # From half resolution, `shuffle` (a kernel size, 1 or 3) gives each half-resolution
+        # cell the logits of its 2 x 2 pixels (8 channels, then depth to space) in place of
+        # the bilinear upsampling: the edges' places learned, not interpolated.
+        self.head = (nn.Conv2d(c[0], 8, shuffle, 1, shuffle // 2) if half and shuffle
+                     else nn.Conv2d(c[0], 2, 1))
         # From half resolution, `refine` > 0 adds a full-resolution step after the bilinear
         # upsampling: the image and the upsampled logits, one 3x3 convolution of `refine`
         # channels and a 1x1 to two, added to the logits (edges placed on the image's own
@@ -93,6 +99,8 @@ class UNet(nn.Module):
         for lat, dec in zip(self.lat, self.dec):
             y = dec(up(lat(y)) + skips.pop())
         y = self.head(y)
+        if self.half and self.shuffle:
+            return F.pixel_shuffle(y, 2)
         if self.half:
             y = F.interpolate(y, scale_factor=2.0, mode="bilinear", align_corners=False)
             if self.refine is not None:
@@ -101,7 +109,9 @@ class UNet(nn.Module):
 
 
 ARCHS = {"unet": UNet, "half": lambda c=(16, 32, 48): UNet(c, half=True),
-         "half-refine": lambda c=(16, 32, 48): UNet(c, half=True, refine=8)}
+         "half-refine": lambda c=(16, 32, 48): UNet(c, half=True, refine=8),
+         "half-shuffle": lambda c=(16, 32, 48): UNet(c, half=True, shuffle=1),
+         "half-shuffle3": lambda c=(16, 32, 48): UNet(c, half=True, shuffle=3)}
 
 
 def load(folder):
@@ -348,7 +358,9 @@ def main():
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--arch", choices=sorted(ARCHS), default="unet",
-                    help="unet: the committed model's; half: the fast one's (from half resolution)")
+                    help="unet: the first committed model's; half-shuffle3: the fast one's (from half "
+                         "resolution, a pixel shuffle from a 3x3 head); half, half-shuffle, half-refine: "
+                         "the other heads tried (docs/perception.md)")
     ap.add_argument("--name", default="needle_thread_unet",
                     help="the model's file name, without .onnx (needle_thread_unet_fast: the fast one)")
     ap.add_argument("--channels", help="channels per scale, e.g. 16,32,48 (the architecture's own by default)")
