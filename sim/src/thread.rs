@@ -23,8 +23,9 @@
 //! Pulling the free chain taut draws thread through the stitches: out of the open loop's
 //! slack first, then out of the earlier loops', newest first, and last out of the tail until
 //! its knot reaches the first entry (modelling choice: the phantom lets thread slide through
-//! every stitch). A cinch does this on purpose; any motion that carries the needle away does
-//! it too. When no slack is left anywhere, the thread is short.
+//! every stitch; `ThreadConfig::slides_through` holds slack behind more than so many). A
+//! cinch does this on purpose; any motion that carries the needle away does it too. When no
+//! slack is left anywhere, the thread is short.
 //!
 //! What happens to it is decided by its geometry: a closing jaw whose blades come within the
 //! catch radius of a link catches it; a tool's blades, wrist and shaft push it (so an open
@@ -66,7 +67,9 @@ pub struct ThreadConfig {
     /// motion ends).
     pub iterations: u32,
     /// How many stitches a pull can draw thread through: slack in a loop behind more
-    /// stitches than this stays there, held by the tissue's friction along their paths.
+    /// stitches than this stays there, held by the tissue's friction along their paths
+    /// (modelling choice: 1,000, every stitch; 1 or 2 run the paper's cinch schedule short,
+    /// docs/experiments.md).
     pub slides_through: u32,
 }
 
