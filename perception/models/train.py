@@ -43,6 +43,8 @@ from PIL import Image, ImageDraw
 from scipy import ndimage as ndi
 
 NEEDLE, THREAD = 1, 2
+# What `--scenes` may add (scene_effects; `dim` in augment).
+SCENES = ("shadows", "streaks", "vessels", "dim")
 
 
 def conv(cin, cout, stride=1):
@@ -365,12 +367,12 @@ def main():
                     help="the model's file name, without .onnx (needle_thread_unet_fast: the fast one)")
     ap.add_argument("--channels", help="channels per scale, e.g. 16,32,48 (the architecture's own by default)")
     ap.add_argument("--scenes", default="",
-                    help="comma-separated extra effects: shadows, streaks, vessels, dim (scene_effects)")
+                    help=f"comma-separated extra effects: {', '.join(SCENES)} (scene_effects)")
     a = ap.parse_args()
     scenes = tuple(filter(None, a.scenes.split(",")))
-    unknown = set(scenes) - {"shadows", "streaks", "vessels", "dim"}
+    unknown = set(scenes) - set(SCENES)
     if unknown:
-        raise SystemExit(f"--scenes: unknown effect(s) {', '.join(sorted(unknown))} (shadows, streaks, vessels, dim)")
+        raise SystemExit(f"--scenes: unknown effect(s) {', '.join(sorted(unknown))} ({', '.join(SCENES)})")
     torch.manual_seed(a.seed)
     torch.set_num_threads(a.threads)
     rng = np.random.default_rng(a.seed)

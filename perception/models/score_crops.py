@@ -1,0 +1,83 @@
+#!/usr/bin/env python3
+"""Score ONNX segmentation models on labelled crops with ONNX Runtime, as the Rust runner
+sees them: a developer step (`pip install torch onnxruntime pillow numpy scipy`).
+
+    stitch perceive dataset --set independent --frames 100 --seed 1 --out /tmp/seg/ind-dev
+    python perception/models/score_crops.py --data /tmp/seg/ind-dev \
+        perception/models/needle_thread_unet.onnx perception/models/needle_thread_unet_fast.onnx
+
+For each model: needle and thread IoU pooled over the crops at each logit threshold of
+`--thresholds` (the contract's is 0), and the needle's errors split by distance from the
+truth's edge (false positives and false negatives within 1.5 px of it, and farther). The
+crops are shrunk to the model's side and the logits brought back as `train.py`'s `iou` does
+(the runner's contract, docs/perception.md). docs/perception.md quotes its figures.
+"""
+
+import argparse
+import os
+import sys
+
+import numpy as np
+import onnxruntime as ort
+import torch
+import torch.nn.functional as F
+from scipy import ndimage as ndi
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import train  # noqa: E402
+
+
+def logits(session, img, lab, max_side):
+    """The model's logits for one crop at the crop's own size, as the runner gives them."""
+    h, w = lab.shape
+    im, _ = train.fit_side(img, lab, max_side)
+    x = torch.from_numpy(np.ascontiguousarray(im.transpose(2, 0, 1)))[None]
+    hh, ww = x.shape[-2:]
+    x = F.pad(x, (0, (-ww) % 8, 0, (-hh) % 8), mode="replicate")
+    out = session.run(None, {session.get_inputs()[0].name: x.numpy()})[0]
+    out = torch.from_numpy(out)[:, :, :hh, :ww]
+    return F.interpolate(out, size=(h, w), mode="bilinear", align_corners=False)[0].numpy()
+
+
+def score(path, items, thresholds, max_side):
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = 1
+    session = ort.InferenceSession(path, so, providers=["CPUExecutionProvider"])
+    acc = np.zeros((len(thresholds), 2, 2))
+    split = np.zeros(5, np.int64)
+    for img, lab in items:
+        y = logits(session, img, lab, max_side)
+        truths = [lab == train.NEEDLE, lab == train.THREAD]
+        for k, th in enumerate(thresholds):
+            for c, t in enumerate(truths):
+                m = y[c] > th
+                acc[k, c] += [(m & t).sum(), (m | t).sum()]
+        m, t = y[0] > 0, truths[0]
+        edge = np.where(t, ndi.distance_transform_edt(t), ndi.distance_transform_edt(~t)) <= 1.5
+        fp, fn = m & ~t, ~m & t
+        split += [(fp & edge).sum(), (fp & ~edge).sum(), (fn & edge).sum(), (fn & ~edge).sum(), t.sum()]
+    print(path)
+    for k, th in enumerate(thresholds):
+        n, t = acc[k, :, 0] / np.maximum(acc[k, :, 1], 1)
+        print(f"  logit > {th:+.2f}: needle IoU {n:.3f}, thread IoU {t:.3f}")
+    print("  needle at logit 0: false positives within 1.5 px of the truth's edge {}, farther {}; "
+          "false negatives within {}, farther {}; of {} true needle pixels".format(*split))
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("models", nargs="+", help="ONNX files keeping the contract")
+    ap.add_argument("--data", required=True, help="crops from `stitch perceive dataset`")
+    ap.add_argument("--thresholds", default="0", help="logit thresholds, comma-separated (default 0)")
+    ap.add_argument("--max-side", type=int, default=256, help="the runner's largest side (256)")
+    a = ap.parse_args()
+    thresholds = [float(v) for v in a.thresholds.split(",")]
+    items = train.load(a.data)
+    if not items:
+        raise SystemExit(f"--data {a.data}: no labelled crops there")
+    for path in a.models:
+        score(path, items, thresholds, a.max_side)
+
+
+if __name__ == "__main__":
+    main()
