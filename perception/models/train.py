@@ -11,11 +11,12 @@ no training setting made: `stitch bench segmentation` (the independent ray trace
     stitch perceive dataset --set training --frames 700 --seed 7 --out /tmp/seg/train
     python perception/models/train.py --data /tmp/seg/train --steps 4000 --out perception/models
     python perception/models/train.py --data /tmp/seg/train --steps 6000 --arch half-shuffle3 \
-        --threads 1 --name needle_thread_unet_fast --out perception/models
+        --threads 1 --scenes rods --name needle_thread_unet_fast --out perception/models
 
-`--scenes shadows,streaks,vessels,dim` adds effects the mock does not draw (scene_effects); tried
-on 2026-12-07, they did not lift the needle's IoU on the independent crops, and the committed
-models are trained without them (docs/perception.md, "How the committed model was made").
+`--scenes` adds what the mock does not draw: `rods` (an instrument's slender steel jaws, which
+the committed fast model is trained with), and `shadows,streaks,vessels,dim` (scene_effects),
+which did not lift the needle's IoU on the independent crops (nor did `dim` or `shadows,dim`
+beside `rods`; docs/perception.md, "How the committed model was made").
 
 writes NAME.onnx (one file, weights inside; needle_thread_unet by default), the reference the
 Rust tests compare against (reference/input.png and reference/NAME-logits.bin: this script's
@@ -43,8 +44,8 @@ from PIL import Image, ImageDraw
 from scipy import ndimage as ndi
 
 NEEDLE, THREAD = 1, 2
-# What `--scenes` may add (scene_effects; `dim` in augment).
-SCENES = ("shadows", "streaks", "vessels", "dim")
+# What `--scenes` may add (scene_effects; `dim` and `rods` in augment).
+SCENES = ("shadows", "streaks", "vessels", "dim", "rods")
 
 
 def conv(cin, cout, stride=1):
@@ -198,6 +199,77 @@ def scene_effects(rng, img, lab, scenes):
     return img
 
 
+def capsule_distance(h, w, a, b):
+    """Each pixel centre's distance (px) from the segment a-b ((x, y) pairs)."""
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32) + 0.5
+    ab = np.subtract(b, a, dtype=np.float32)
+    t = ((xx - a[0]) * ab[0] + (yy - a[1]) * ab[1]) / max(float(ab @ ab), 1e-6)
+    t = np.clip(t, 0, 1)
+    dx, dy = xx - (a[0] + t * ab[0]), yy - (a[1] + t * ab[1])
+    # Signed across the axis (for shading), and the distance itself.
+    across = (dx * -ab[1] + dy * ab[0]) / max(float(np.hypot(*ab)), 1e-6)
+    return np.hypot(dx, dy), across
+
+
+def rods(rng, img, lab):
+    """An instrument's jaws (`--scenes rods`): one or two straight, round metal rods side by
+    side, sometimes from a wider shaft, steel-bright or dark, lying over the needle and thread
+    or under them, labelled instrument. The mock draws its instrument as a dark blob; a real
+    needle driver's jaws are slender steel, a wire like the needle but straight and thicker."""
+    img, lab = img.copy(), lab.copy()
+    h, w = lab.shape
+    side = max(h, w)
+    ys, xs = np.nonzero(lab == NEEDLE)
+    if len(xs) and rng.random() < 0.7:
+        k = rng.integers(len(xs))
+        tip = np.array([xs[k], ys[k]], np.float32) + rng.normal(0, 6, 2).astype(np.float32)
+    else:
+        tip = rng.uniform(0, 1, 2).astype(np.float32) * (w, h)
+    ang = rng.uniform(0, 2 * np.pi)
+    d = np.array([np.cos(ang), np.sin(ang)], np.float32)
+    normal = np.array([-d[1], d[0]], np.float32)
+    r = rng.uniform(1.5, 7.0)
+    length = rng.uniform(0.4, 1.5) * side
+    gap = 2 * r * rng.uniform(1.05, 2.2)
+    n = 2 if rng.random() < 0.7 else 1
+    parts = []
+    for i in range(n):
+        off = normal * gap * (i - (n - 1) / 2)
+        back = rng.uniform(0, 0.15) * side
+        parts.append((tip + off + d * back, tip + off + d * (back + length), r))
+    if rng.random() < 0.4:
+        start = tip + d * (rng.uniform(0.3, 0.8) * length)
+        parts.append((start, start + d * side * 2, r * rng.uniform(2.0, 4.0)))
+    base = rng.uniform(0.12, 0.8)
+    tint = base * rng.uniform(0.9, 1.1, 3).astype(np.float32)
+    spec = rng.uniform(0.0, 0.9) if rng.random() < 0.7 else 0.0
+    lx, lz = rng.uniform(-0.8, 0.8), rng.uniform(0.4, 1.0)
+    d0, sw = rng.uniform(-0.6, 0.6), rng.uniform(0.08, 0.3)
+    over = rng.random() < 0.6
+    allowed = np.ones((h, w), bool) if over else lab == 0
+    if rng.random() < 0.5:
+        # Its shadow on the tissue.
+        dy, dx = (int(v) for v in rng.integers(-20, 21, 2))
+        shade = np.zeros((h, w), np.float32)
+        for a, b, rr in parts:
+            dist, _ = capsule_distance(h, w, a + (dx, dy), b + (dx, dy))
+            shade = np.maximum(shade, np.clip(rr - dist + 0.5, 0, 1))
+        shade = ndi.gaussian_filter(shade, rng.uniform(0.5, 4.0))
+        img[lab == 0] = (img * (1 - rng.uniform(0.2, 0.6) * shade[..., None]))[lab == 0]
+    for a, b, rr in parts:
+        dist, across = capsule_distance(h, w, a, b)
+        alpha = np.clip(rr - dist + 0.5, 0, 1) * allowed
+        if not alpha.any():
+            continue
+        u = np.clip(across / rr, -1, 1)
+        nz = np.sqrt(np.clip(1 - u * u, 0, 1))
+        lit = 0.35 + 0.65 * np.clip(lx * u + lz * nz, 0, 1)
+        colour = tint[None, None] * lit[..., None] + (spec * np.exp(-((u - d0) / sw) ** 2))[..., None]
+        img = img * (1 - alpha[..., None]) + np.clip(colour, 0, 1) * alpha[..., None]
+        lab[alpha >= 0.5] = 3
+    return img.astype(np.float32), lab
+
+
 def augment(rng, img, lab, size, scenes=()):
     img = img.copy()
     h, w = lab.shape
@@ -230,6 +302,9 @@ def augment(rng, img, lab, size, scenes=()):
         img[band & bg] *= rng.uniform(0.2, 0.6)
     if scenes:
         img = scene_effects(rng, img, lab, scenes)
+    if "rods" in scenes and rng.random() < 0.5:
+        img, lab = rods(rng, img, lab)
+        bg = lab == 0
     # The needle: brighter or duller, tinted by what it reflects.
     nd = lab == NEEDLE
     if nd.any():
