@@ -206,7 +206,7 @@ def capsule_distance(h, w, a, b):
     t = ((xx - a[0]) * ab[0] + (yy - a[1]) * ab[1]) / max(float(ab @ ab), 1e-6)
     t = np.clip(t, 0, 1)
     dx, dy = xx - (a[0] + t * ab[0]), yy - (a[1] + t * ab[1])
-    # Signed across the axis (for shading), and the distance itself.
+    # The offset across the axis, signed (for shading); returned after the distance.
     across = (dx * -ab[1] + dy * ab[0]) / max(float(np.hypot(*ab)), 1e-6)
     return np.hypot(dx, dy), across
 
