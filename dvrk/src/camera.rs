@@ -7,7 +7,8 @@
 //! in the robot frame) from the configuration, since `camera_info` does not carry it. A
 //! capture is the first left and right images that both arrived after the call, stamped
 //! within [`CameraSettings::max_pair_skew_s`] of each other, fresh and non-zero, of the size
-//! and calibration the camera connected with.
+//! and calibration the camera connected with; each side's last few images are kept, so a
+//! right stream that lags the left by a frame still pairs.
 //!
 //! A real camera streams; the simulator renders on demand, so a capture can first pull a
 //! trigger ([`Trigger`]) that makes it render and publish one pair, and names that pair's
@@ -395,10 +396,16 @@ pub trait Trigger: Send + Sync {
 /// How long a capture waits for a triggered pair before asking for it again.
 pub const RESEND_AFTER: Duration = Duration::from_millis(250);
 
+/// Images kept per side while a capture looks for a pair: a right stream that lags the left
+/// by a frame or two still pairs with the left image of its own stamp, which a slot holding
+/// only the latest would have overwritten (three 1080p images a side are about 19 MB).
+const IMAGES_KEPT: usize = 3;
+
 /// What the camera's topics said, as the bus thread received it.
 #[derive(Debug, Default)]
 struct Heard {
-    images: [Option<(Image, Instant)>; 2],
+    /// Each side's latest images with when they arrived, oldest first.
+    images: [std::collections::VecDeque<(Image, Instant)>; 2],
     infos: [Option<(CameraInfo, Instant)>; 2],
     unreadable: Option<String>,
 }
@@ -455,7 +462,13 @@ impl Ros2Camera {
         .into_iter()
         .enumerate()
         {
-            let keep_image = move |h: &mut Heard, m| h.images[side] = Some((m, Instant::now()));
+            let keep_image = move |h: &mut Heard, m| {
+                let kept = &mut h.images[side];
+                if kept.len() == IMAGES_KEPT {
+                    kept.pop_front();
+                }
+                kept.push_back((m, Instant::now()));
+            };
             let keep_info = move |h: &mut Heard, m| h.infos[side] = Some((m, Instant::now()));
             bus.subscribe::<Image, _>(image, types::IMAGE, &qos, keeper(&heard, keep_image))
                 .map_err(camera_fault)?;
@@ -578,21 +591,7 @@ impl StereoCamera for Ros2Camera {
             None => None,
         };
         let deadline = asked + Duration::from_secs_f64(s.capture_timeout_s);
-        let matching = |h: &Heard| {
-            let [Some((l, lt)), Some((r, rt))] = &h.images else {
-                return None;
-            };
-            let ok = match &expected {
-                Some(t) => l.header.stamp == *t && r.header.stamp == *t,
-                None => {
-                    *lt >= asked
-                        && *rt >= asked
-                        && (l.header.stamp.as_secs_f64() - r.header.stamp.as_secs_f64()).abs()
-                            <= s.max_pair_skew_s
-                }
-            };
-            ok.then(|| (l.clone(), r.clone()))
-        };
+        let matching = |h: &Heard| find_pair(h, asked, expected.as_ref(), s.max_pair_skew_s);
         let pair = match (&self.trigger, expected) {
             (Some(t), Some(stamp)) => loop {
                 let until = (Instant::now() + RESEND_AFTER).min(deadline);
@@ -608,7 +607,7 @@ impl StereoCamera for Ros2Camera {
         };
         let Some((left, right)) = pair else {
             let h = lock(&self.heard);
-            let got = |i: usize, topic: &str| match &h.images[i] {
+            let got = |i: usize, topic: &str| match h.images[i].back() {
                 None => format!("nothing on {topic}"),
                 Some((m, at)) => format!(
                     "{topic} last stamped {:.3} s, arrived {:.3} s ago",
@@ -671,6 +670,31 @@ impl StereoCamera for Ros2Camera {
     }
 }
 
+/// The newest left and right images that make a pair: both stamped `expected` when a trigger
+/// named the stamp; otherwise both arrived at or after `asked`, stamped within `max_skew_s`
+/// of each other (of those, the pair with the newest left image, and for it the right image
+/// closest in stamp).
+fn find_pair(
+    h: &Heard,
+    asked: Instant,
+    expected: Option<&msg::Time>,
+    max_skew_s: f64,
+) -> Option<(Image, Image)> {
+    let [lefts, rights] = &h.images;
+    lefts.iter().rev().find_map(|(l, lt)| {
+        let candidates = rights.iter().filter(|(r, rt)| match expected {
+            Some(t) => l.header.stamp == *t && r.header.stamp == *t,
+            None => *lt >= asked && *rt >= asked,
+        });
+        let skew = |r: &Image| (l.header.stamp.as_secs_f64() - r.header.stamp.as_secs_f64()).abs();
+        candidates
+            .map(|(r, _)| r)
+            .filter(|r| expected.is_some() || skew(r) <= max_skew_s)
+            .min_by(|a, b| skew(a).total_cmp(&skew(b)))
+            .map(|r| (l.clone(), r.clone()))
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -694,6 +718,52 @@ mod tests {
             camera_info_msg(c, false, t, "l"),
             camera_info_msg(c, true, t, "r"),
         )
+    }
+
+    #[test]
+    fn a_right_stream_a_frame_behind_still_pairs_with_the_left_image_of_its_stamp() {
+        let img = |sec: i32, nanosec: u32, id: &str| {
+            let px = RgbImage {
+                width: 2,
+                height: 1,
+                data: vec![0; 6],
+            };
+            image_msg(&px, msg::Time { sec, nanosec }, id)
+        };
+        let asked = Instant::now();
+        let later = asked + Duration::from_millis(10);
+        let mut h = Heard::default();
+        // Left frames 1 and 2 are in before right frame 1: the latest left alone pairs with
+        // nothing.
+        h.images[0].extend([(img(1, 0, "l1"), later), (img(1, 500_000_000, "l2"), later)]);
+        h.images[1].push_back((img(1, 0, "r1"), later));
+        let (l, r) = find_pair(&h, asked, None, 0.05).expect("the pair of stamp 1 s");
+        assert_eq!(
+            (l.header.frame_id.as_str(), r.header.frame_id.as_str()),
+            ("l1", "r1")
+        );
+        // Right frame 2 arrives: the newest pair wins.
+        h.images[1].push_back((img(1, 500_000_000, "r2"), later));
+        let (l, r) = find_pair(&h, asked, None, 0.05).expect("the pair of stamp 1.5 s");
+        assert_eq!(
+            (l.header.frame_id.as_str(), r.header.frame_id.as_str()),
+            ("l2", "r2")
+        );
+        // Images that arrived before the capture was asked for are not fresh.
+        assert!(find_pair(&h, later + Duration::from_millis(1), None, 0.05).is_none());
+        // Stamps further apart than the skew allowed make no pair.
+        let mut apart = Heard::default();
+        apart.images[0].push_back((img(2, 0, "l"), later));
+        apart.images[1].push_back((img(1, 0, "r"), later));
+        assert!(find_pair(&apart, asked, None, 0.05).is_none());
+        // A triggered capture takes the images of the stamp it asked for, whenever they came.
+        let t = msg::Time { sec: 1, nanosec: 0 };
+        let (l, r) = find_pair(&h, later + Duration::from_secs(1), Some(&t), 0.0)
+            .expect("the triggered pair");
+        assert_eq!(
+            (l.header.frame_id.as_str(), r.header.frame_id.as_str()),
+            ("l1", "r1")
+        );
     }
 
     #[test]
