@@ -8,7 +8,8 @@ sees them: a developer step (`pip install torch onnxruntime pillow numpy scipy`)
 
 For each model: needle and thread IoU pooled over the crops at each logit threshold of
 `--thresholds` (the contract's is 0), and the needle's errors split by distance from the
-truth's edge (false positives and false negatives within 1.5 px of it, and farther). The
+truth's edge (false positives and false negatives within 1.5 px of it, and farther; the
+farther false positives by what the truth has there: tissue, thread, instrument). The
 crops are shrunk to the model's side and the logits brought back as `train.py`'s `iou` does
 (the runner's contract, docs/perception.md). docs/perception.md quotes its figures.
 """
@@ -45,6 +46,8 @@ def score(path, items, thresholds, max_side):
     session = ort.InferenceSession(path, so, providers=["CPUExecutionProvider"])
     acc = np.zeros((len(thresholds), 2, 2))
     split = np.zeros(5, np.int64)
+    # The far false positives by what the truth has there: background, thread, instrument.
+    far_on = np.zeros(3, np.int64)
     for img, lab in items:
         y = logits(session, img, lab, max_side)
         truths = [lab == train.NEEDLE, lab == train.THREAD]
@@ -56,12 +59,14 @@ def score(path, items, thresholds, max_side):
         edge = np.where(t, ndi.distance_transform_edt(t), ndi.distance_transform_edt(~t)) <= 1.5
         fp, fn = m & ~t, ~m & t
         split += [(fp & edge).sum(), (fp & ~edge).sum(), (fn & edge).sum(), (fn & ~edge).sum(), t.sum()]
+        far_on += [(fp & ~edge & (lab == v)).sum() for v in (0, train.THREAD, 3)]
     print(path)
     for k, th in enumerate(thresholds):
         n, t = acc[k, :, 0] / np.maximum(acc[k, :, 1], 1)
         print(f"  logit > {th:+.2f}: needle IoU {n:.3f}, thread IoU {t:.3f}")
     print("  needle at logit 0: false positives within 1.5 px of the truth's edge {}, farther {}; "
           "false negatives within {}, farther {}; of {} true needle pixels".format(*split))
+    print("  the farther false positives on tissue {}, thread {}, instrument {}".format(*far_on))
 
 
 def main():
