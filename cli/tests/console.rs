@@ -14,11 +14,13 @@ use support::{python, root, tmp};
 /// A WebSocket viewer of the console's stream.
 type Viewer = tungstenite::WebSocket<tungstenite::stream::MaybeTlsStream<TcpStream>>;
 
-/// A `stitch run --console` child, its console's address and token.
+/// A `stitch run --console` child, its console's address and token, and what it has
+/// written to stderr so far (for a failing test's message).
 struct Run {
     child: Child,
     addr: String,
     token: String,
+    log: std::sync::Arc<std::sync::Mutex<Vec<String>>>,
 }
 
 impl Run {
@@ -36,11 +38,14 @@ impl Run {
             .expect("stitch run starts");
         let stderr = child.stderr.take().expect("stderr");
         let (tx, rx) = std::sync::mpsc::channel();
+        let log = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
+        let kept = log.clone();
         std::thread::spawn(move || {
             for line in BufReader::new(stderr).lines().map_while(Result::ok) {
                 if let Some(url) = line.strip_prefix("console: ") {
                     let _ = tx.send(url.split(' ').next().unwrap_or("").to_string());
                 }
+                kept.lock().expect("the log").push(line);
             }
         });
         let url = rx
@@ -54,7 +59,14 @@ impl Run {
             child,
             addr: addr.to_string(),
             token: token.to_string(),
+            log,
         }
+    }
+
+    /// The last `n` lines the run wrote to stderr, one per line.
+    fn log_tail(&self, n: usize) -> String {
+        let log = self.log.lock().expect("the log");
+        log[log.len().saturating_sub(n)..].join("\n")
     }
 
     /// A viewer on its console's stream, its token sent.
@@ -610,8 +622,15 @@ fn over_ros2_the_console_shows_the_pairs_the_pipeline_captured() {
     let mut ws = run.viewer();
     let next = tungstenite::Message::text(r#"{"type":"frame"}"#);
     let (mut frames, mut with_estimate) = (0, 0);
+    let mut ended = None;
     while frames < 2 || with_estimate < 1 {
-        let Ok(m) = ws.read() else { break };
+        let m = match ws.read() {
+            Ok(m) => m,
+            Err(e) => {
+                ended = Some(e);
+                break;
+            }
+        };
         if let tungstenite::Message::Binary(jpeg) = &m {
             let img = image::load_from_memory(jpeg).expect("a JPEG");
             assert_eq!(
@@ -642,10 +661,14 @@ fn over_ros2_the_console_shows_the_pairs_the_pipeline_captured() {
             _ => {}
         }
     }
-    assert!(
-        frames >= 2 && with_estimate >= 1,
-        "{frames} frames, {with_estimate} with an estimate"
-    );
+    if frames < 2 || with_estimate < 1 {
+        let status = run.child.try_wait().ok().flatten();
+        panic!(
+            "{frames} frames, {with_estimate} with an estimate; the stream ended with {ended:?}; \
+             the run's exit status so far {status:?}; its stderr's last lines:\n{}",
+            run.log_tail(40)
+        );
+    }
     drop(ws);
     let _ = run.wait(Duration::from_secs(120));
 }
