@@ -9,9 +9,11 @@ learns the needle's and the thread's shape rather than the mock's palette. Score
 no training setting made: `stitch bench segmentation` (the independent ray tracer's set).
 
     stitch perceive dataset --set training --frames 700 --seed 7 --out /tmp/seg/train
+    stitch perceive dataset --set training --frames 700 --seed 8 --out /tmp/seg/train8
     python perception/models/train.py --data /tmp/seg/train --steps 4000 --out perception/models
-    python perception/models/train.py --data /tmp/seg/train --steps 6000 --arch half-shuffle3 \
-        --threads 1 --scenes rods --name needle_thread_unet_fast --out perception/models
+    python perception/models/train.py --data /tmp/seg/train,/tmp/seg/train8 --steps 7500 \
+        --arch half-shuffle3 --threads 1 --scenes rods --ema 0.999 \
+        --name needle_thread_unet_fast --out perception/models
 
 `--scenes` adds what the mock does not draw: `rods` (an instrument's slender steel jaws, which
 the committed fast model is trained with), and `shadows,streaks,vessels,dim` (scene_effects),
@@ -42,6 +44,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 from PIL import Image, ImageDraw
 from scipy import ndimage as ndi
+from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 NEEDLE, THREAD = 1, 2
 # What `--scenes` may add (scene_effects; `dim` and `rods` in augment).
@@ -426,7 +429,8 @@ def export(model, path, channels=3):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", required=True, help="crops from `stitch perceive dataset --set training`")
+    ap.add_argument("--data", required=True,
+                    help="crops from `stitch perceive dataset --set training` (several folders: comma-separated)")
     ap.add_argument("--val", help="crops to report IoU on while training (not used to choose anything)")
     ap.add_argument("--out", default=os.path.dirname(os.path.abspath(__file__)))
     ap.add_argument("--steps", type=int, default=3000)
@@ -434,6 +438,9 @@ def main():
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--ema", type=float, default=0.0,
+                    help="export (and report) an exponential moving average of the weights with this decay "
+                         "per step, e.g. 0.999 (0: the last step's weights)")
     ap.add_argument("--arch", choices=sorted(ARCHS), default="unet",
                     help="unet: the first committed model's; half-shuffle3: the fast one's (from half "
                          "resolution, a pixel shuffle from a 3x3 head); half, half-shuffle, half-refine: "
@@ -451,12 +458,14 @@ def main():
     torch.manual_seed(a.seed)
     torch.set_num_threads(a.threads)
     rng = np.random.default_rng(a.seed)
-    items = load(a.data)
+    items = [it for folder in a.data.split(",") for it in load(folder)]
     val = load(a.val) if a.val else []
     model = ARCHS[a.arch](*([tuple(int(c) for c in a.channels.split(","))] if a.channels else []))
     print(f"{len(items)} crops, {sum(p.numel() for p in model.parameters())} parameters")
     opt = torch.optim.AdamW(model.parameters(), lr=3e-3, weight_decay=1e-4)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=3e-3, total_steps=a.steps, pct_start=0.1)
+    # The nets have no normalisation layers, so the average is of the parameters alone.
+    ema = AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(a.ema)) if a.ema > 0 else None
     t0 = time.time()
     for step in range(1, a.steps + 1):
         batch = [augment(rng, *items[rng.integers(len(items))], a.size, scenes) for _ in range(a.batch)]
@@ -467,12 +476,19 @@ def main():
         loss.backward()
         opt.step()
         sched.step()
+        if ema is not None:
+            ema.update_parameters(model)
         if step % 250 == 0 or step == a.steps:
             msg = f"step {step} loss {loss.item():.3f} {time.time() - t0:.0f} s"
             if val:
                 n, t = iou(model, val, 256)
                 msg += f" val IoU needle {n:.3f} thread {t:.3f}"
+                if ema is not None:
+                    n, t = iou(ema.module, val, 256)
+                    msg += f" (average: {n:.3f} {t:.3f})"
             print(msg, flush=True)
+    if ema is not None:
+        model = ema.module
     os.makedirs(a.out, exist_ok=True)
     path = os.path.join(a.out, f"{a.name}.onnx")
     export(model, path)
@@ -482,7 +498,7 @@ def main():
     onnx.save_model(m, path, save_as_external_data=False)
     for extra in glob.glob(path + ".data"):
         os.remove(extra)
-    write_reference(model, a.data, a.out, a.name)
+    write_reference(model, a.data.split(",")[0], a.out, a.name)
     wrong = os.path.join(a.out, "wrong_input.onnx")
     if not os.path.exists(wrong):
         export(UNet_one_channel(), wrong, channels=1)
