@@ -10,8 +10,11 @@ For each model: needle and thread IoU pooled over the crops at each logit thresh
 `--thresholds` (the contract's is 0), and the needle's errors split by distance from the
 truth's edge (false positives and false negatives within 1.5 px of it, and farther; the
 farther false positives by what the truth has there: tissue, thread, instrument). The
-crops are shrunk to the model's side and the logits brought back as `train.py`'s `iou` does
-(the runner's contract, docs/perception.md). docs/perception.md quotes its figures.
+crops are brought to the model's scale and the logits back as the Rust runner does (the
+contract, docs/perception.md): shrunk to at most `stitch.max_side` pixels, enlarged by at
+most `stitch.max_upscale`, the model's metadata (256 and 1 where it has none); `--scales
+SIDExUP,...` scores each model at other scales too (e.g. `256x1,240x1.5`).
+docs/perception.md quotes its figures.
 """
 
 import argparse
@@ -28,10 +31,10 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import train  # noqa: E402
 
 
-def logits(session, img, lab, max_side):
+def logits(session, img, lab, max_side, max_upscale=1.0):
     """The model's logits for one crop at the crop's own size, as the runner gives them."""
     h, w = lab.shape
-    im, _ = train.fit_side(img, lab, max_side)
+    im, _ = train.fit_side(img, lab, max_side, max_upscale)
     x = torch.from_numpy(np.ascontiguousarray(im.transpose(2, 0, 1)))[None]
     hh, ww = x.shape[-2:]
     x = F.pad(x, (0, (-ww) % 8, 0, (-hh) % 8), mode="replicate")
@@ -40,16 +43,28 @@ def logits(session, img, lab, max_side):
     return F.interpolate(out, size=(h, w), mode="bilinear", align_corners=False)[0].numpy()
 
 
-def score(path, items, thresholds, max_side):
+def model_scale(session):
+    """The model's region scale from its metadata, as the runner reads it: (max_side,
+    max_upscale), 256 and 1 where a key is absent."""
+    meta = session.get_modelmeta().custom_metadata_map
+    return int(meta.get("stitch.max_side", 256)), float(meta.get("stitch.max_upscale", 1))
+
+
+def session_of(path):
     so = ort.SessionOptions()
     so.intra_op_num_threads = 1
-    session = ort.InferenceSession(path, so, providers=["CPUExecutionProvider"])
+    return ort.InferenceSession(path, so, providers=["CPUExecutionProvider"])
+
+
+def score(path, items, thresholds, scale):
+    session = session_of(path)
+    max_side, max_upscale = scale or model_scale(session)
     acc = np.zeros((len(thresholds), 2, 2))
     split = np.zeros(5, np.int64)
     # The far false positives by what the truth has there: background, thread, instrument.
     far_on = np.zeros(3, np.int64)
     for img, lab in items:
-        y = logits(session, img, lab, max_side)
+        y = logits(session, img, lab, max_side, max_upscale)
         truths = [lab == train.NEEDLE, lab == train.THREAD]
         for k, th in enumerate(thresholds):
             for c, t in enumerate(truths):
@@ -60,7 +75,7 @@ def score(path, items, thresholds, max_side):
         fp, fn = m & ~t, ~m & t
         split += [(fp & edge).sum(), (fp & ~edge).sum(), (fn & edge).sum(), (fn & ~edge).sum(), t.sum()]
         far_on += [(fp & ~edge & (lab == v)).sum() for v in (0, train.THREAD, 3)]
-    print(path)
+    print(f"{path} (regions at most {max_side} px, enlarged at most {max_upscale:g} times)")
     for k, th in enumerate(thresholds):
         n, t = acc[k, :, 0] / np.maximum(acc[k, :, 1], 1)
         print(f"  logit > {th:+.2f}: needle IoU {n:.3f}, thread IoU {t:.3f}")
@@ -74,14 +89,22 @@ def main():
     ap.add_argument("models", nargs="+", help="ONNX files keeping the contract")
     ap.add_argument("--data", required=True, help="crops from `stitch perceive dataset`")
     ap.add_argument("--thresholds", default="0", help="logit thresholds, comma-separated (default 0)")
-    ap.add_argument("--max-side", type=int, default=256, help="the runner's largest side (256)")
+    ap.add_argument("--scales", default="",
+                    help="SIDExUP,...: score at these region scales (the model's own metadata's by default)")
     a = ap.parse_args()
     thresholds = [float(v) for v in a.thresholds.split(",")]
     items = train.load(a.data)
     if not items:
         raise SystemExit(f"--data {a.data}: no labelled crops there")
+    scales = [None]
+    if a.scales:
+        try:
+            scales = [(int(v.split("x")[0]), float(v.split("x")[1])) for v in a.scales.split(",")]
+        except (ValueError, IndexError):
+            raise SystemExit(f"--scales {a.scales}: want SIDExUP pairs, e.g. 256x1,240x1.5")
     for path in a.models:
-        score(path, items, thresholds, a.max_side)
+        for scale in scales:
+            score(path, items, thresholds, scale)
 
 
 if __name__ == "__main__":

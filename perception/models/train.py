@@ -131,14 +131,21 @@ def load(folder):
     return items
 
 
-def fit_side(img, lab, max_side):
-    """What the Rust runner does: shrink a region whose longer side exceeds max_side."""
+def fit_side(img, lab, max_side, max_upscale=1.0):
+    """What the Rust runner does: shrink a region whose longer side exceeds max_side (PIL's
+    box filter), and enlarge one below it towards it by at most max_upscale (bilinear with
+    pixel centres aligned, on floats; the labels by nearest neighbour)."""
     h, w = lab.shape
     s = max(h, w)
-    if s <= max_side:
-        return img, lab
-    k = max_side / s
+    k = min(max_side / s, max(max_upscale, 1.0))
     size = (max(8, round(w * k)), max(8, round(h * k)))
+    if k == 1.0 or size == (w, h):
+        return img, lab
+    if k > 1.0:
+        x = torch.from_numpy(np.ascontiguousarray(img.transpose(2, 0, 1)))[None]
+        x = F.interpolate(x, size=(size[1], size[0]), mode="bilinear", align_corners=False)
+        lb = Image.fromarray(lab).resize(size, Image.NEAREST)
+        return np.ascontiguousarray(x[0].numpy().transpose(1, 2, 0)), np.asarray(lb)
     im = Image.fromarray((img * 255).astype(np.uint8)).resize(size, Image.BOX)
     lb = Image.fromarray(lab).resize(size, Image.NEAREST)
     return np.asarray(im, np.float32) / 255.0, np.asarray(lb)

@@ -10,8 +10,14 @@
 //! - The first output, float32 `[1, 2, H, W]`: logits, channel 0 the needle, channel 1 the
 //!   thread. A pixel is in a mask where its logit is above 0.
 //! - H and W may be anything the model accepts (dynamic axes); a region whose longer side
-//!   is above [`OnnxSegmenter::max_side`] is shrunk to it first (box filter) and the logits
-//!   brought back to the region's pixels by bilinear interpolation.
+//!   is above [`OnnxSegmenter::max_side`] is shrunk to it first (box filter), one whose
+//!   longer side is below it is enlarged towards it by at most
+//!   [`OnnxSegmenter::max_upscale`] (bilinear; 1 by default: not enlarged), and the logits
+//!   are brought back to the region's pixels by bilinear interpolation.
+//! - Optional metadata (the ONNX file's `metadata_props`) sets those two for the model:
+//!   `stitch.max_side` (pixels, an integer from 8 to 4096; 256 when absent) and
+//!   `stitch.max_upscale` (a number from 1 to 4; 1 when absent). A value out of range or
+//!   not a number is an error when the model is loaded.
 //!
 //! Finding the region (`locate`) and the sub-pixel edge measure (`needleness`) stay with the
 //! colour segmenter's rules: the model decides which pixels of the region are needle and
@@ -66,8 +72,13 @@ pub struct OnnxSegmenter {
     /// Where the model came from, for messages.
     source: String,
     /// A region whose longer side is above this is shrunk to it before the model sees it,
-    /// pixels (the committed model was trained on regions of at most 256).
+    /// pixels (the committed models were trained on regions of at most 256). From the
+    /// model's `stitch.max_side` metadata, 256 when it has none.
     pub max_side: u32,
+    /// A region whose longer side is below `max_side` is enlarged towards it by at most
+    /// this factor (1: never enlarged). From the model's `stitch.max_upscale` metadata, 1
+    /// when it has none.
+    pub max_upscale: f64,
     /// Finds the region and measures edges.
     pub locator: ColorSegmenter,
 }
@@ -117,11 +128,17 @@ impl OnnxSegmenter {
         };
         check_outlet(output.dtype(), 2)
             .map_err(|why| err(&format!("output {}: {why}", output.name())))?;
+        let (max_side, max_upscale) = {
+            let meta = session.metadata().map_err(|e| err(&e))?;
+            let read = |key: &str| meta.custom(key);
+            region_scale(read).map_err(|why| err(&why))?
+        };
         let me = Self {
             input: input.name().to_string(),
             session: Mutex::new(session),
             source: source.to_string(),
-            max_side: 256,
+            max_side,
+            max_upscale,
             locator: ColorSegmenter::default(),
         };
         // One inference, so that a model that loads but cannot run says so now, not mid-run.
@@ -167,8 +184,10 @@ impl OnnxSegmenter {
         if rw == 0 || rh == 0 {
             return Ok([Vec::new(), Vec::new()]);
         }
-        // The model's grid: the region shrunk so its longer side fits, then padded.
-        let scale = (f64::from(self.max_side.max(SIDE_MULTIPLE)) / rw.max(rh) as f64).min(1.0);
+        // The model's grid: the region shrunk so its longer side fits (or enlarged towards
+        // it, by at most `max_upscale`), then padded.
+        let scale = (f64::from(self.max_side.max(SIDE_MULTIPLE)) / rw.max(rh) as f64)
+            .min(self.max_upscale.max(1.0));
         let mw = ((rw as f64 * scale).round() as usize).max(1);
         let mh = ((rh as f64 * scale).round() as usize).max(1);
         let m = SIDE_MULTIPLE as usize;
@@ -207,6 +226,39 @@ impl OnnxSegmenter {
     }
 }
 
+/// The model's region scale, `(max_side, max_upscale)`, from its metadata (`read` looks a
+/// key up): 256 and 1 where a key is absent.
+fn region_scale(read: impl Fn(&str) -> Option<String>) -> Result<(u32, f64), String> {
+    let max_side = match read(MAX_SIDE_KEY) {
+        None => 256,
+        Some(v) => v
+            .trim()
+            .parse::<u32>()
+            .ok()
+            .filter(|s| (SIDE_MULTIPLE..=4096).contains(s))
+            .ok_or_else(|| {
+                format!("metadata {MAX_SIDE_KEY} = {v:?}: want an integer from 8 to 4096 (pixels)")
+            })?,
+    };
+    let max_upscale = match read(MAX_UPSCALE_KEY) {
+        None => 1.0,
+        Some(v) => v
+            .trim()
+            .parse::<f64>()
+            .ok()
+            .filter(|u| (1.0..=4.0).contains(u))
+            .ok_or_else(|| {
+                format!("metadata {MAX_UPSCALE_KEY} = {v:?}: want a number from 1 to 4")
+            })?,
+    };
+    Ok((max_side, max_upscale))
+}
+
+/// The metadata key that sets [`OnnxSegmenter::max_side`].
+pub const MAX_SIDE_KEY: &str = "stitch.max_side";
+/// The metadata key that sets [`OnnxSegmenter::max_upscale`].
+pub const MAX_UPSCALE_KEY: &str = "stitch.max_upscale";
+
 /// Whether an input or output is float32, rank 4, one image, `channels` channels (a
 /// dynamic size is accepted).
 fn check_outlet(t: &ValueType, channels: i64) -> Result<(), String> {
@@ -226,8 +278,9 @@ fn check_outlet(t: &ValueType, channels: i64) -> Result<(), String> {
     Ok(())
 }
 
-/// The model's input `[3, ph, pw]`: the region box-filtered down to `mw × mh`, values
-/// `/ 255`, padded right and below by repeating the last column and row.
+/// The model's input `[3, ph, pw]`: the region box-filtered down to `mw × mh` (or, where
+/// that is larger than the region, interpolated up to it bilinearly), values `/ 255`,
+/// padded right and below by repeating the last column and row.
 fn model_input(
     image: &RgbImage,
     roi: Rect,
@@ -251,23 +304,51 @@ fn model_input(
         let b = edge(i + 1).max(a + 1).min(len);
         (a, b)
     };
-    for my in 0..mh {
-        let (y0, y1) = span(my, mh, rh);
-        for mx in 0..mw {
-            let (x0, x1) = span(mx, mw, rw);
-            let mut acc = [0u32; 3];
-            for y in y0..y1 {
-                let row = (roi.y0 as usize + y) * w + roi.x0 as usize;
-                for x in x0..x1 {
-                    let p = &image.data[(row + x) * 3..(row + x) * 3 + 3];
-                    for c in 0..3 {
-                        acc[c] += u32::from(p[c]);
-                    }
+    let px = |x: usize, y: usize, c: usize| -> f32 {
+        let i = ((roi.y0 as usize + y) * w + roi.x0 as usize + x) * 3 + c;
+        f32::from(image.data[i])
+    };
+    let enlarged = mw > rw || mh > rh;
+    if enlarged {
+        // Enlarged (the scale is the same both ways, so neither side shrinks): bilinear,
+        // pixel centres aligned, as PyTorch's `interpolate(..., align_corners=False)` that
+        // train.py's `fit_side` enlarges with.
+        let (sx, sy) = (rw as f64 / mw as f64, rh as f64 / mh as f64);
+        let at = |i: usize, s: f64, len: usize| -> (usize, usize, f32) {
+            let f = ((i as f64 + 0.5) * s - 0.5).clamp(0.0, (len - 1) as f64);
+            let a = f.floor() as usize;
+            (a, (a + 1).min(len - 1), (f - f.floor()) as f32)
+        };
+        for my in 0..mh {
+            let (y0, y1, ty) = at(my, sy, rh);
+            for mx in 0..mw {
+                let (x0, x1, tx) = at(mx, sx, rw);
+                for c in 0..3 {
+                    let a = px(x0, y0, c) + (px(x1, y0, c) - px(x0, y0, c)) * tx;
+                    let b = px(x0, y1, c) + (px(x1, y1, c) - px(x0, y1, c)) * tx;
+                    out[c * plane + my * pw + mx] = (a + (b - a) * ty) / 255.0;
                 }
             }
-            let n = ((y1 - y0) * (x1 - x0)) as f32 * 255.0;
-            for c in 0..3 {
-                out[c * plane + my * pw + mx] = acc[c] as f32 / n;
+        }
+    } else {
+        for my in 0..mh {
+            let (y0, y1) = span(my, mh, rh);
+            for mx in 0..mw {
+                let (x0, x1) = span(mx, mw, rw);
+                let mut acc = [0u32; 3];
+                for y in y0..y1 {
+                    let row = (roi.y0 as usize + y) * w + roi.x0 as usize;
+                    for x in x0..x1 {
+                        let p = &image.data[(row + x) * 3..(row + x) * 3 + 3];
+                        for c in 0..3 {
+                            acc[c] += u32::from(p[c]);
+                        }
+                    }
+                }
+                let n = ((y1 - y0) * (x1 - x0)) as f32 * 255.0;
+                for c in 0..3 {
+                    out[c * plane + my * pw + mx] = acc[c] as f32 / n;
+                }
             }
         }
     }
@@ -390,6 +471,68 @@ mod tests {
                     );
                 }
             }
+        }
+    }
+
+    /// Enlarged by 1.5, a cell is the bilinear blend of the pixels round its centre, pixel
+    /// centres aligned: cell 0 of 6 sits at source x = -1/6 (clamped to pixel 0), cell 1 at
+    /// 1/2 (halfway between pixels 0 and 1), cell 2 at 7/6. The values are PyTorch's
+    /// `F.interpolate(size=(1, 6), mode="bilinear", align_corners=False)` of the row.
+    #[test]
+    fn an_enlarged_region_is_interpolated_with_pixel_centres_aligned() {
+        let img = RgbImage {
+            width: 4,
+            height: 1,
+            data: [0u8, 60, 120, 240]
+                .iter()
+                .flat_map(|&v| [v, v / 2, 255 - v])
+                .collect(),
+        };
+        let roi = Rect {
+            x0: 0,
+            y0: 0,
+            x1: 4,
+            y1: 1,
+        };
+        let v = model_input(&img, roi, 6, 1, 8, 8);
+        let want = [0.0, 30.0, 70.0, 110.0, 180.0, 240.0];
+        for (x, w) in want.iter().enumerate() {
+            assert!(
+                (v[x] * 255.0 - w).abs() < 1e-3,
+                "cell {x}: {} against {w}",
+                v[x] * 255.0
+            );
+            let inv = v[2 * 64 + x] * 255.0;
+            assert!((inv - (255.0 - w)).abs() < 1e-3, "cell {x}, blue: {inv}");
+        }
+        // The one row is repeated below it (padding).
+        assert!((v[8 + 3] - v[3]).abs() < 1e-6);
+    }
+
+    #[test]
+    fn the_region_scale_comes_from_the_models_metadata_and_bad_values_are_named() {
+        let meta = |pairs: &'static [(&'static str, &'static str)]| {
+            move |k: &str| {
+                pairs
+                    .iter()
+                    .find(|(key, _)| *key == k)
+                    .map(|(_, v)| v.to_string())
+            }
+        };
+        assert_eq!(region_scale(meta(&[])), Ok((256, 1.0)));
+        assert_eq!(
+            region_scale(meta(&[(MAX_SIDE_KEY, "240"), (MAX_UPSCALE_KEY, "1.5")])),
+            Ok((240, 1.5))
+        );
+        for (key, bad) in [
+            (MAX_SIDE_KEY, "4"),
+            (MAX_SIDE_KEY, "two hundred"),
+            (MAX_UPSCALE_KEY, "0.5"),
+            (MAX_UPSCALE_KEY, "NaN"),
+        ] {
+            let pairs: &'static [(&str, &str)] = Box::leak(Box::new([(key, bad)]));
+            let e = region_scale(meta(pairs)).expect_err(bad);
+            assert!(e.contains(key) && e.contains(bad), "{e}");
         }
     }
 }

@@ -53,7 +53,10 @@ fn the_committed_models_give_pytorchs_logits_on_the_reference_input() {
 /// The committed model `NAME.onnx` gives `reference/NAME-logits.bin` (train.py's PyTorch
 /// logits) on the reference input, and the masks those logits make.
 fn gives_pytorchs_logits(name: &str) {
-    let s = OnnxSegmenter::from_file(&models().join(format!("{name}.onnx")), 1).expect(name);
+    let mut s = OnnxSegmenter::from_file(&models().join(format!("{name}.onnx")), 1).expect(name);
+    // PyTorch's logits are at the crop's own size: the model's enlarging left out here (the
+    // enlarged reference below checks it).
+    s.max_upscale = 1.0;
     let img = reference_input();
     let (dims, want) = reference_logits(&format!("{name}-logits.bin"));
     assert_eq!(dims, vec![2, img.height as usize, img.width as usize]);
@@ -108,22 +111,47 @@ fn shrunk_pattern(w: u32, h: u32) -> RgbImage {
 fn a_shrunk_region_gives_the_logits_onnx_runtime_gives_from_python() {
     let s = committed();
     assert_eq!(s.max_side, 256, "the reference was made at a side of 256");
-    let img = shrunk_pattern(300, 41);
-    let (dims, want) = reference_logits("shrunk_logits.bin");
-    assert_eq!(dims, vec![2, 14, 100]);
+    matches_python(&s, 300, 41, "shrunk_logits.bin");
+}
+
+/// A region below the model's side, enlarged by its `stitch.max_upscale` (1.5, from the
+/// committed model's metadata) bilinearly and the logits brought back, checked against
+/// ONNX Runtime run from Python on the same image.
+#[test]
+fn an_enlarged_region_gives_the_logits_onnx_runtime_gives_from_python() {
+    let s = committed();
+    assert_eq!(
+        (s.max_side, s.max_upscale),
+        (256, 1.5),
+        "the committed model's metadata"
+    );
+    matches_python(&s, 100, 40, "enlarged_logits.bin");
+    let fast = OnnxSegmenter::from_file(&models().join("needle_thread_unet_fast.onnx"), 1)
+        .expect("the fast model");
+    assert_eq!((fast.max_side, fast.max_upscale), (240, 1.5));
+}
+
+/// `s` on `shrunk_pattern(w, h)` gives the logits in `file` (every third row and column,
+/// made by shrunk_reference.py).
+fn matches_python(s: &OnnxSegmenter, w: u32, h: u32, file: &str) {
+    let img = shrunk_pattern(w, h);
+    let (dims, want) = reference_logits(file);
+    let (rows, cols) = (h.div_ceil(3) as usize, w.div_ceil(3) as usize);
+    assert_eq!(dims, vec![2, rows, cols]);
     let [needle, thread] = s
         .logits(&img, Rect::full(img.width, img.height))
         .expect("logits");
     let mut worst = 0.0f32;
     for (c, plane) in [needle, thread].iter().enumerate() {
-        for (k, &w) in want[c * 1400..(c + 1) * 1400].iter().enumerate() {
-            let (y, x) = (3 * (k / 100), 3 * (k % 100));
-            worst = worst.max((plane[y * 300 + x] - w).abs());
+        let n = rows * cols;
+        for (k, &v) in want[c * n..(c + 1) * n].iter().enumerate() {
+            let (y, x) = (3 * (k / cols), 3 * (k % cols));
+            worst = worst.max((plane[y * w as usize + x] - v).abs());
         }
     }
     assert!(
         worst < 1e-3,
-        "largest difference from the reference's logits: {worst}"
+        "{file}: largest difference from the reference's logits: {worst}"
     );
 }
 
@@ -191,4 +219,36 @@ fn a_model_with_the_wrong_input_shape_is_refused_with_the_contract() {
     let m = config_message(e);
     assert!(m.contains("wrong_input.onnx"), "{m}");
     assert!(m.contains("[1, 3, H, W]"), "{m}");
+}
+
+/// The committed model with one more `metadata_props` entry: a serialised protobuf message
+/// followed by more of its fields is the message with them merged in (ModelProto's field 14,
+/// a StringStringEntryProto of key 1 and value 2), so no ONNX library is needed here.
+fn with_metadata(key: &str, value: &str) -> Vec<u8> {
+    let mut bytes = std::fs::read(models().join("needle_thread_unet_fast.onnx")).expect("model");
+    let mut entry = vec![0x0a, key.len() as u8];
+    entry.extend(key.as_bytes());
+    entry.extend([0x12, value.len() as u8]);
+    entry.extend(value.as_bytes());
+    bytes.extend([(14 << 3) | 2, entry.len() as u8]);
+    bytes.extend(entry);
+    bytes
+}
+
+#[test]
+fn a_region_scale_out_of_range_in_the_metadata_is_a_clear_error() {
+    // The appended entry is read (a value in range loads and is used) ...
+    let s = OnnxSegmenter::from_bytes(&with_metadata("stitch.max_side", "128"), "ok.onnx", 1)
+        .expect("a model with a side of 128");
+    assert_eq!(s.max_side, 128);
+    // ... and one out of range is refused, naming the model, the key and the value.
+    for (key, value) in [("stitch.max_upscale", "0.5"), ("stitch.max_side", "big")] {
+        let e = OnnxSegmenter::from_bytes(&with_metadata(key, value), "scaled.onnx", 1)
+            .expect_err(value);
+        let m = config_message(e);
+        assert!(
+            m.contains("scaled.onnx") && m.contains(key) && m.contains(value),
+            "{m}"
+        );
+    }
 }
