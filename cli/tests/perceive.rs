@@ -37,12 +37,17 @@ fn vec3(v: &serde_json::Value) -> [f64; 3] {
 
 /// Frame 0 of the own set (seed 1) written by `perceive render` into a fresh directory.
 fn rendered(name: &str) -> PathBuf {
+    rendered_sample(name, "0")
+}
+
+/// The own set's pair `sample` of seed 1, rendered to disk by `perceive render`.
+fn rendered_sample(name: &str, sample: &str) -> PathBuf {
     let d = dir(name);
     let out = stitch(&[
         "perceive",
         "render",
         "--sample",
-        "0",
+        sample,
         "--seed",
         "1",
         "--out",
@@ -522,6 +527,40 @@ fn the_segmenter_is_only_for_the_pipeline() {
     );
 }
 
+/// `--rounds` times every region again, the segmenters taking turns; the IoUs do not change.
+#[test]
+fn bench_segmentation_times_each_region_over_rounds() {
+    let args = |rounds: &'static str| {
+        [
+            "bench",
+            "segmentation",
+            "--frames",
+            "3",
+            "--independent-frames",
+            "0",
+            "--json",
+            "--rounds",
+            rounds,
+        ]
+    };
+    let rows = |out: &Output| -> serde_json::Value {
+        assert_eq!(out.status.code(), Some(0), "{}", text(&out.stderr));
+        serde_json::from_slice(&out.stdout).expect("JSON")
+    };
+    let once = rows(&stitch(&args("1")));
+    let thrice = rows(&stitch(&args("3")));
+    assert_eq!(once[0]["needle_iou"], thrice[0]["needle_iou"]);
+    assert_eq!(once[0]["views"], thrice[0]["views"]);
+    assert!(thrice[0]["time"]["median_ms"].as_f64().expect("a time") > 0.0);
+    let out = stitch(&args("0"));
+    assert_eq!(out.status.code(), Some(2), "{}", text(&out.stderr));
+    assert!(
+        text(&out.stderr).contains("--rounds"),
+        "{}",
+        text(&out.stderr)
+    );
+}
+
 #[cfg(not(feature = "onnx"))]
 #[test]
 fn without_the_onnx_feature_the_learned_segmenter_says_how_to_get_it() {
@@ -547,36 +586,59 @@ fn without_the_onnx_feature_the_learned_segmenter_says_how_to_get_it() {
 mod onnx {
     use super::*;
 
+    /// Five rendered pairs: each built-in model places the needle within 2 mm on four or
+    /// more, and where it does not, it says so (a typed failure, exit 6), never an answer
+    /// more than 3 mm off. (One pair may be refused: on the own set the models leave 2–13 %
+    /// of pairs ambiguous, docs/perception.md.)
     #[test]
-    fn the_built_in_models_find_the_needle_in_a_rendered_pair() {
-        let d = rendered("onnx-needle");
-        let truth: serde_json::Value =
-            serde_json::from_slice(&std::fs::read(d.join("truth.json")).expect("truth"))
-                .expect("JSON");
+    fn the_built_in_models_find_the_needle_in_rendered_pairs() {
+        let pairs: Vec<(PathBuf, serde_json::Value)> = (0..5)
+            .map(|k| {
+                let d = rendered_sample(&format!("onnx-needle-{k}"), &k.to_string());
+                let truth =
+                    serde_json::from_slice(&std::fs::read(d.join("truth.json")).expect("truth"))
+                        .expect("JSON");
+                (d, truth)
+            })
+            .collect();
         for segmenter in ["onnx", "onnx-fast"] {
-            let out = stitch(&[
-                "perceive",
-                "needle",
-                s(&d.join("left.png")),
-                s(&d.join("right.png")),
-                "--calib",
-                s(&d.join("calib.toml")),
-                "--segmenter",
-                segmenter,
-            ]);
-            assert_eq!(
-                out.status.code(),
-                Some(0),
-                "{segmenter}: {}",
-                text(&out.stderr)
-            );
-            let est: serde_json::Value = serde_json::from_slice(&out.stdout).expect("JSON");
-            let e = dist(vec3(&est["center_m"]), vec3(&truth["center_m"]));
-            assert!(
-                e < 0.002,
-                "{segmenter}: centre off by {e} m: {}",
-                text(&out.stdout)
-            );
+            let mut found = 0;
+            for (d, truth) in &pairs {
+                let out = stitch(&[
+                    "perceive",
+                    "needle",
+                    s(&d.join("left.png")),
+                    s(&d.join("right.png")),
+                    "--calib",
+                    s(&d.join("calib.toml")),
+                    "--segmenter",
+                    segmenter,
+                ]);
+                if out.status.code() == Some(6) {
+                    assert!(
+                        text(&out.stderr).contains("no estimate"),
+                        "{}",
+                        text(&out.stderr)
+                    );
+                    continue;
+                }
+                assert_eq!(
+                    out.status.code(),
+                    Some(0),
+                    "{segmenter}: {}",
+                    text(&out.stderr)
+                );
+                let est: serde_json::Value = serde_json::from_slice(&out.stdout).expect("JSON");
+                let e = dist(vec3(&est["center_m"]), vec3(&truth["center_m"]));
+                assert!(
+                    e < 0.003,
+                    "{segmenter}, {}: centre off by {e} m: {}",
+                    d.display(),
+                    text(&out.stdout)
+                );
+                found += usize::from(e < 0.002);
+            }
+            assert!(found >= 4, "{segmenter}: {found} of 5 pairs within 2 mm");
         }
     }
 

@@ -204,26 +204,34 @@ impl OnnxSegmenter {
             return Ok([crop(needle), crop(thread)]);
         }
         // Bilinear, pixel centres aligned (PyTorch's align_corners=False).
-        let (sx, sy) = (mw as f64 / rw as f64, mh as f64 / rh as f64);
+        let (xs, ys) = (taps(rw, mw), taps(rh, mh));
         let up = |c: &[f32]| -> Vec<f32> {
             let mut v = Vec::with_capacity(rw * rh);
-            for y in 0..rh {
-                let fy = ((y as f64 + 0.5) * sy - 0.5).clamp(0.0, (mh - 1) as f64);
-                let (y0, ty) = (fy.floor() as usize, (fy - fy.floor()) as f32);
-                let y1 = (y0 + 1).min(mh - 1);
-                for x in 0..rw {
-                    let fx = ((x as f64 + 0.5) * sx - 0.5).clamp(0.0, (mw - 1) as f64);
-                    let (x0, tx) = (fx.floor() as usize, (fx - fx.floor()) as f32);
-                    let x1 = (x0 + 1).min(mw - 1);
-                    let a = c[y0 * pw + x0] + (c[y0 * pw + x1] - c[y0 * pw + x0]) * tx;
-                    let b = c[y1 * pw + x0] + (c[y1 * pw + x1] - c[y1 * pw + x0]) * tx;
-                    v.push(a + (b - a) * ty);
-                }
+            for &(y0, y1, ty) in &ys {
+                let (r0, r1) = (&c[y0 * pw..y0 * pw + mw], &c[y1 * pw..y1 * pw + mw]);
+                v.extend(xs.iter().map(|&(x0, x1, tx)| {
+                    let a = r0[x0] + (r0[x1] - r0[x0]) * tx;
+                    let b = r1[x0] + (r1[x1] - r1[x0]) * tx;
+                    a + (b - a) * ty
+                }));
             }
             v
         };
         Ok([up(needle), up(thread)])
     }
+}
+
+/// Bilinear taps, pixel centres aligned (PyTorch's `align_corners=False`), for each of `n`
+/// samples over `len` source pixels: the two source indices and the second's weight.
+fn taps(n: usize, len: usize) -> Vec<(usize, usize, f32)> {
+    let s = len as f64 / n as f64;
+    (0..n)
+        .map(|i| {
+            let f = ((i as f64 + 0.5) * s - 0.5).clamp(0.0, (len - 1) as f64);
+            let a = f.floor() as usize;
+            (a, (a + 1).min(len - 1), (f - f.floor()) as f32)
+        })
+        .collect()
 }
 
 /// The model's region scale, `(max_side, max_upscale)`, from its metadata (`read` looks a
@@ -304,28 +312,23 @@ fn model_input(
         let b = edge(i + 1).max(a + 1).min(len);
         (a, b)
     };
-    let px = |x: usize, y: usize, c: usize| -> f32 {
-        let i = ((roi.y0 as usize + y) * w + roi.x0 as usize + x) * 3 + c;
-        f32::from(image.data[i])
-    };
     let enlarged = mw > rw || mh > rh;
     if enlarged {
         // Enlarged (the scale is the same both ways, so neither side shrinks): bilinear,
         // pixel centres aligned, as PyTorch's `interpolate(..., align_corners=False)` that
         // train.py's `fit_side` enlarges with.
-        let (sx, sy) = (rw as f64 / mw as f64, rh as f64 / mh as f64);
-        let at = |i: usize, s: f64, len: usize| -> (usize, usize, f32) {
-            let f = ((i as f64 + 0.5) * s - 0.5).clamp(0.0, (len - 1) as f64);
-            let a = f.floor() as usize;
-            (a, (a + 1).min(len - 1), (f - f.floor()) as f32)
+        let (xs, ys) = (taps(mw, rw), taps(mh, rh));
+        let row = |y: usize| {
+            let start = ((roi.y0 as usize + y) * w + roi.x0 as usize) * 3;
+            &image.data[start..start + rw * 3]
         };
-        for my in 0..mh {
-            let (y0, y1, ty) = at(my, sy, rh);
-            for mx in 0..mw {
-                let (x0, x1, tx) = at(mx, sx, rw);
+        for (my, &(y0, y1, ty)) in ys.iter().enumerate() {
+            let (r0, r1) = (row(y0), row(y1));
+            for (mx, &(x0, x1, tx)) in xs.iter().enumerate() {
                 for c in 0..3 {
-                    let a = px(x0, y0, c) + (px(x1, y0, c) - px(x0, y0, c)) * tx;
-                    let b = px(x0, y1, c) + (px(x1, y1, c) - px(x0, y1, c)) * tx;
+                    let at = |r: &[u8], x: usize| f32::from(r[x * 3 + c]);
+                    let a = at(r0, x0) + (at(r0, x1) - at(r0, x0)) * tx;
+                    let b = at(r1, x0) + (at(r1, x1) - at(r1, x0)) * tx;
                     out[c * plane + my * pw + mx] = (a + (b - a) * ty) / 255.0;
                 }
             }
