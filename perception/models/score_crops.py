@@ -74,7 +74,7 @@ def score(path, items, thresholds, scale):
         edge = np.where(t, ndi.distance_transform_edt(t), ndi.distance_transform_edt(~t)) <= 1.5
         fp, fn = m & ~t, ~m & t
         split += [(fp & edge).sum(), (fp & ~edge).sum(), (fn & edge).sum(), (fn & ~edge).sum(), t.sum()]
-        far_on += [(fp & ~edge & (lab == v)).sum() for v in (0, train.THREAD, 3)]
+        far_on += [(fp & ~edge & (lab == v)).sum() for v in (0, train.THREAD, train.INSTRUMENT)]
     print(f"{path} (regions at most {max_side} px, enlarged at most {max_upscale:g} times)")
     for k, th in enumerate(thresholds):
         n, t = acc[k, :, 0] / np.maximum(acc[k, :, 1], 1)

@@ -46,7 +46,8 @@ from PIL import Image, ImageDraw
 from scipy import ndimage as ndi
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
-NEEDLE, THREAD = 1, 2
+# The labels `stitch perceive dataset` writes (sim/src/render.rs, `Label`).
+NEEDLE, THREAD, INSTRUMENT = 1, 2, 3
 # What `--scenes` may add (scene_effects; `dim` and `rods` in augment).
 SCENES = ("shadows", "streaks", "vessels", "dim", "rods")
 
@@ -188,7 +189,7 @@ def scene_effects(rng, img, lab, scenes):
         dark = 1 - rng.uniform(0.25, 0.7) * shadow[..., None]
         onto = bg | ((lab == NEEDLE) & (rng.random() < 0.3))
         img[onto] = (img * dark)[onto]
-    tool = lab == 3
+    tool = lab == INSTRUMENT
     if "streaks" in scenes and tool.any() and rng.random() < 0.5:
         d = ndi.distance_transform_edt(tool)
         a, width = rng.uniform(1.0, 6.0), rng.uniform(0.8, 3.0)
@@ -276,7 +277,7 @@ def rods(rng, img, lab):
         lit = 0.35 + 0.65 * np.clip(lx * u + lz * nz, 0, 1)
         colour = tint[None, None] * lit[..., None] + (spec * np.exp(-((u - d0) / sw) ** 2))[..., None]
         img = img * (1 - alpha[..., None]) + np.clip(colour, 0, 1) * alpha[..., None]
-        lab[alpha >= 0.5] = 3
+        lab[alpha >= 0.5] = INSTRUMENT
     return img.astype(np.float32), lab
 
 
@@ -300,7 +301,7 @@ def augment(rng, img, lab, size, scenes=()):
         spots = (n > rng.uniform(0.6, 0.85)) & bg
         img[spots] = np.clip(img[spots] + rng.uniform(0.4, 1.0), 0, 1)
     # The instrument: sometimes bright steel, like the needle but not the needle.
-    tool = lab == 3
+    tool = lab == INSTRUMENT
     if tool.any() and rng.random() < 0.4:
         img[tool] = np.clip(img[tool] * rng.uniform(1.5, 4.0) + rng.uniform(0.1, 0.4), 0, 1)
     # Shadows: dark curved bands on the tissue.
