@@ -97,7 +97,8 @@ fn parse_length(s: &str) -> Result<f64, String> {
 struct TraceJson {
     /// From the first end to the swage, robot frame, m.
     points_m: Vec<[f64; 3]>,
-    /// Each point's uncertainty, m.
+    /// Each point's uncertainty, m (with `--length-m`, widened near the hidden spans to
+    /// half the farthest the thread hidden there can reach).
     sigma_m: Vec<f64>,
     length_m: f64,
     /// Stretches the left view does not show, `[from, to]` along the thread, m.
@@ -302,8 +303,8 @@ pub fn bench(args: BenchThreadArgs) -> anyhow::Result<u8> {
 
 fn table(rows: &[BenchRow]) -> String {
     let mut s = String::from(
-        "| set | pairs | traced | failures | median error (mm) | p90 error (mm) | median length error | true points within 2σ | median time (ms) |\n\
-         |---|---|---|---|---|---|---|---|---|\n",
+        "| set | pairs | traced | failures | median error (mm) | p90 error (mm) | median length error | true points within 2σ | of them by hidden spans: share, within 2σ | median time (ms) |\n\
+         |---|---|---|---|---|---|---|---|---|---|\n",
     );
     let line = |name: String, a: &ThreadAccuracy| {
         let failures = if a.failures.is_empty() {
@@ -316,13 +317,15 @@ fn table(rows: &[BenchRow]) -> String {
                 .join(", ")
         };
         format!(
-            "| {name} | {} | {} | {failures} | {:.2} | {:.2} | {:.1} % | {:.0} % | {:.1} |\n",
+            "| {name} | {} | {} | {failures} | {:.2} | {:.2} | {:.1} % | {:.0} % | {:.0} %, {:.0} % | {:.1} |\n",
             a.frames,
             a.traced,
             a.median_error_m * 1e3,
             a.p90_error_m * 1e3,
             a.median_length_error * 100.0,
             a.within_2sigma * 100.0,
+            a.hidden_points * 100.0,
+            a.within_2sigma_hidden * 100.0,
             a.median_seconds * 1e3,
         )
     };

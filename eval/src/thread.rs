@@ -187,6 +187,9 @@ pub struct ThreadResult {
     pub length_error: f64,
     /// True points (every millimetre) within 2σ of the trace's nearest point, and all.
     pub within_2sigma: (usize, usize),
+    /// Of those, the true points whose nearest point of the trace lies in one of its hidden
+    /// spans: within 2σ, and all.
+    pub within_2sigma_hidden: (usize, usize),
     /// Time to trace, s.
     pub seconds: f64,
     /// Whether another tool was over the thread.
@@ -217,6 +220,7 @@ pub fn evaluate(
             errors_m: vec![],
             length_error: f64::NAN,
             within_2sigma: (0, 0),
+            within_2sigma_hidden: (0, 0),
             seconds,
             occluded: sample.occluded,
             visible: f64::NAN,
@@ -238,15 +242,31 @@ pub fn compare(t: &ThreadTrace, truth: &[Point], seconds: f64, occluded: bool) -
         .collect();
     let true_len: f64 = truth.windows(2).map(|w| (w[1] - w[0]).norm()).sum();
     let dense = resample(truth, 0.001);
-    let inside = dense
-        .iter()
-        .filter(|p| t.nearest(p).is_some_and(|(_, d, s)| d <= 2.0 * s))
-        .count();
+    // Where along the trace each of its points lies, m, to tell the hidden spans.
+    let mut arc = vec![0.0; t.points.len()];
+    for i in 1..t.points.len() {
+        arc[i] = arc[i - 1] + (t.points[i] - t.points[i - 1]).norm();
+    }
+    let (mut inside, mut hidden) = ((0, 0), (0, 0));
+    for p in &dense {
+        let covered = t.nearest(p).is_some_and(|(_, d, s)| d <= 2.0 * s);
+        let in_hidden = stitch_robot::nearest_on_polyline(p, &t.points).is_some_and(|(_, i, f)| {
+            let a = arc[i] + f * (arc.get(i + 1).copied().unwrap_or(arc[i]) - arc[i]);
+            t.hidden.iter().any(|&[from, to]| (from..=to).contains(&a))
+        });
+        inside.0 += usize::from(covered);
+        inside.1 += 1;
+        if in_hidden {
+            hidden.0 += usize::from(covered);
+            hidden.1 += 1;
+        }
+    }
     ThreadResult {
         failure: None,
         errors_m,
         length_error: (t.length_m - true_len) / true_len.max(1e-9),
-        within_2sigma: (inside, dense.len()),
+        within_2sigma: inside,
+        within_2sigma_hidden: hidden,
         seconds,
         occluded,
         seen: t.seen_share,
@@ -271,6 +291,10 @@ pub struct ThreadAccuracy {
     pub median_length_error: f64,
     /// Share of true points within 2σ of the trace.
     pub within_2sigma: f64,
+    /// Share of the true points whose nearest point of the trace lies in a hidden span.
+    pub hidden_points: f64,
+    /// The share of those within 2σ.
+    pub within_2sigma_hidden: f64,
     /// Median time to trace a pair, s.
     pub median_seconds: f64,
 }
@@ -290,6 +314,9 @@ pub fn accuracy(results: &[ThreadResult]) -> ThreadAccuracy {
     let (inside, all) = ok.iter().fold((0, 0), |(a, b), r| {
         (a + r.within_2sigma.0, b + r.within_2sigma.1)
     });
+    let (hidden_inside, hidden_all) = ok.iter().fold((0, 0), |(a, b), r| {
+        (a + r.within_2sigma_hidden.0, b + r.within_2sigma_hidden.1)
+    });
     let mut failures: Vec<(String, usize)> = Vec::new();
     for f in results.iter().filter_map(|r| r.failure.as_ref()) {
         match failures.iter_mut().find(|(k, _)| k == f) {
@@ -305,6 +332,8 @@ pub fn accuracy(results: &[ThreadResult]) -> ThreadAccuracy {
         p90_error_m: crate::percentile(&errors, 0.9),
         median_length_error: crate::percentile(&lengths, 0.5),
         within_2sigma: inside as f64 / all.max(1) as f64,
+        hidden_points: hidden_all as f64 / all.max(1) as f64,
+        within_2sigma_hidden: hidden_inside as f64 / hidden_all.max(1) as f64,
         median_seconds: crate::percentile(&secs, 0.5),
     }
 }

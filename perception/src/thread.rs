@@ -35,6 +35,10 @@
 //!    wound hides) is spliced in, the largest piece first, up to three; the trace whose
 //!    length comes nearest the prior wins. Without a prior nothing is spliced: not every
 //!    thread pixel in the region need be this thread (a stitch's open loop).
+//! 6. **Hidden spans' reach**: with a length prior, the thread the trace may be short of
+//!    (the prior, plus `hidden_length_sigmas` of its σ, less the trace) may lie behind any
+//!    hidden span; near each, σ grows to half the farthest a thread that long, pinned at
+//!    the span's ends, can reach (an ellipsoid with those ends as foci).
 //!
 //! Hand-written (no crate traces thin curves in stereo): the path search is A* on a pixel
 //! grid, the splines a penalised least-squares solve in band storage (`crate::band`).
@@ -65,7 +69,8 @@ pub struct ThreadTrace {
     /// frame, m: the fitted curve sampled about every millimetre.
     pub points: Vec<Point>,
     /// Each point's uncertainty: the root of its covariance's trace (its expected distance
-    /// from the truth), m.
+    /// from the truth), m; with a length prior the trace may fall short of, near its hidden
+    /// spans at least half the farthest the thread hidden there can reach (stage 6).
     pub sigma_m: Vec<f64>,
     /// The curve's length, m.
     pub length_m: f64,
@@ -119,6 +124,10 @@ pub struct ThreadParams {
     pub smoothing: f64,
     /// Uncertainty of the length prior, as a share of it.
     pub length_prior_share: f64,
+    /// How far past a length prior the thread may run, in the prior's σ, where the hidden
+    /// spans' reach is worked out (1: the least that put 90 % of the hidden thread inside
+    /// the band on the own and independent sets, seed 1; `docs/perception.md`).
+    pub hidden_length_sigmas: f64,
 }
 
 impl Default for ThreadParams {
@@ -136,6 +145,7 @@ impl Default for ThreadParams {
             knot_px: 14.0,
             smoothing: 2.0,
             length_prior_share: 0.1,
+            hidden_length_sigmas: 1.0,
         }
     }
 }
@@ -145,6 +155,90 @@ const MAX_GROWTH: usize = 3;
 
 /// Trace the thread in a rectified pair.
 pub fn trace(
+    params: &ThreadParams,
+    segmenter: &dyn Segmenter,
+    calib: &StereoCalibration,
+    left: &RgbImage,
+    right: &RgbImage,
+    hint: &ThreadHint,
+) -> Result<ThreadTrace, PerceptionError> {
+    let mut t = trace_regions(params, segmenter, calib, left, right, hint)?;
+    if let Some(prior) = hint.length_m.filter(|l| *l > 0.0) {
+        widen_hidden(
+            &mut t,
+            prior * (1.0 + params.hidden_length_sigmas * params.length_prior_share),
+        );
+    }
+    Ok(t)
+}
+
+/// Where a trace is shorter than `most_m`, the most thread there can be between its ends
+/// (from a length prior), the thread it is missing may lie in any of its hidden spans: each
+/// span's σ is widened to half the distance from the span's chord to the ellipse that a
+/// thread of the span's length plus the whole shortfall, pinned at the span's two ends,
+/// cannot leave (the ends its foci, the length its major axis), there and past the span's
+/// ends as far as the ellipse reaches. A bound, not a fit's posterior: the thread may take
+/// any way behind what hides it, and 2σ is the farthest it can reach. A trace not shorter
+/// than `most_m` keeps the fit's σ.
+fn widen_hidden(t: &mut ThreadTrace, most_m: f64) {
+    let excess = most_m - t.length_m;
+    if excess <= 0.0 || t.hidden.is_empty() || t.points.len() < 2 {
+        return;
+    }
+    let mut arc = vec![0.0; t.points.len()];
+    for i in 1..t.points.len() {
+        arc[i] = arc[i - 1] + (t.points[i] - t.points[i - 1]).norm();
+    }
+    let n = t.points.len();
+    let mut widened = t.sigma_m.clone();
+    for &[from, to] in &t.hidden {
+        let (i0, i1) = (
+            arc.partition_point(|&a| a < from).min(n - 1),
+            arc.partition_point(|&a| a <= to).saturating_sub(1),
+        );
+        if i1 <= i0 {
+            continue;
+        }
+        let chord = (t.points[i1] - t.points[i0]).norm();
+        let span = arc[i1] - arc[i0];
+        let semi_major = 0.5 * (span + excess);
+        let semi_minor = (semi_major * semi_major - 0.25 * chord * chord)
+            .max(0.0)
+            .sqrt();
+        // Each point's place along the ellipse's axis from its centre: on the chord within
+        // the span, and past its ends (where the ellipse reaches beyond the foci) by the arc
+        // length from the end.
+        let axial = |k: usize| {
+            if k < i0 {
+                -0.5 * chord - (arc[i0] - arc[k])
+            } else if k > i1 {
+                0.5 * chord + (arc[k] - arc[i1])
+            } else {
+                ((arc[k] - arc[i0]) / span.max(1e-12) - 0.5) * chord
+            }
+        };
+        for (i, w) in widened.iter_mut().enumerate() {
+            // The ellipse's half-width is largest at the centre: at each point, take its
+            // widest over the stretches to the points either side, so that the σ read
+            // between two points (interpolated) still bounds it.
+            let (xa, xb) = (axial(i.saturating_sub(1)), axial((i + 1).min(n - 1)));
+            let x = if xa <= 0.0 && xb >= 0.0 {
+                0.0
+            } else {
+                xa.abs().min(xb.abs())
+            };
+            if x < semi_major {
+                let half_width = semi_minor * (1.0 - (x / semi_major).powi(2)).sqrt();
+                *w = w.max(0.5 * half_width);
+            }
+        }
+    }
+    t.sigma_m = widened;
+}
+
+/// [`trace`] before the hidden spans are widened: the region grown while the thread runs
+/// off it.
+fn trace_regions(
     params: &ThreadParams,
     segmenter: &dyn Segmenter,
     calib: &StereoCalibration,
@@ -2047,6 +2141,69 @@ mod tests {
                 let hi = xl - disparity[0];
                 proptest::prop_assert_eq!(a.runs(lo, hi, row), b.runs(lo, hi, row), "row {}", row);
             }
+        }
+    }
+
+    /// A thread hidden behind a span, as long as the trace's shortfall allows, lies within
+    /// 2σ of the trace wherever it runs: points drawn inside the ellipsoid whose foci are the
+    /// span's ends (every point of such a thread is), each against the trace's nearest point
+    /// and the σ there; a trace as long as the most there can be keeps its σ.
+    #[test]
+    fn a_hidden_span_s_band_holds_any_thread_the_shortfall_allows() {
+        use rand::Rng;
+        use rand_chacha::ChaCha8Rng;
+        use rand_chacha::rand_core::SeedableRng;
+        // A straight trace 100 mm long, a point every 3 mm, hidden from 30 to 51 mm.
+        let points: Vec<Point> = (0..=33)
+            .map(|i| Point::new(0.003 * f64::from(i), 0.0, 0.0))
+            .collect();
+        let trace = ThreadTrace {
+            sigma_m: vec![0.0002; points.len()],
+            length_m: 0.099,
+            hidden: vec![[0.0299, 0.0511]],
+            seen_share: 0.8,
+            matched: 20,
+            left_path_px: vec![],
+            points,
+        };
+        let mut same = trace.clone();
+        widen_hidden(&mut same, 0.099);
+        assert_eq!(same, trace, "a trace not short keeps its σ");
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        for excess in [0.002, 0.01, 0.04] {
+            let mut t = trace.clone();
+            widen_hidden(&mut t, trace.length_m + excess);
+            assert_eq!(
+                (t.sigma_m[0], t.sigma_m[33]),
+                (0.0002, 0.0002),
+                "past the ellipse the fit's σ stays"
+            );
+            let (f1, f2) = (Point::new(0.030, 0.0, 0.0), Point::new(0.051, 0.0, 0.0));
+            let reach = 0.021 + excess;
+            let mut tried = 0;
+            while tried < 5000 {
+                let p = Point::new(
+                    rng.random_range(0.0..0.1),
+                    rng.random_range(-0.03..0.03),
+                    rng.random_range(-0.03..0.03),
+                );
+                if (p - f1).norm() + (p - f2).norm() > reach {
+                    continue;
+                }
+                tried += 1;
+                let (_, d, sigma) = t.nearest(&p).expect("a trace");
+                assert!(
+                    d <= 2.0 * sigma + 1e-12,
+                    "{p:?}, excess {excess}: {d} from the trace, σ {sigma}"
+                );
+            }
+            // And not wider than it: the middle's σ is half the ellipse's semi-minor axis.
+            let middle = t.sigma_m[13..=17].iter().copied().fold(0.0, f64::max);
+            let semi_minor = ((reach / 2.0).powi(2) - (0.021f64 / 2.0).powi(2)).sqrt();
+            assert!(
+                (middle - 0.5 * semi_minor).abs() < 1e-9,
+                "{middle} against {semi_minor}"
+            );
         }
     }
 }
