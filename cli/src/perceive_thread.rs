@@ -303,8 +303,8 @@ pub fn bench(args: BenchThreadArgs) -> anyhow::Result<u8> {
 
 fn table(rows: &[BenchRow]) -> String {
     let mut s = String::from(
-        "| set | pairs | traced | failures | median error (mm) | p90 error (mm) | median length error | true points within 2σ | of them by hidden spans: share, within 2σ | median time (ms) |\n\
-         |---|---|---|---|---|---|---|---|---|---|\n",
+        "| set | pairs | traced | failures | median error (mm) | p90 error (mm) | median length error | true points within 2σ | of them by hidden spans: share, within 2σ | median σ at the truth (mm) | median time (ms) |\n\
+         |---|---|---|---|---|---|---|---|---|---|---|\n",
     );
     let line = |name: String, a: &ThreadAccuracy| {
         let failures = if a.failures.is_empty() {
@@ -317,7 +317,7 @@ fn table(rows: &[BenchRow]) -> String {
                 .join(", ")
         };
         format!(
-            "| {name} | {} | {} | {failures} | {:.2} | {:.2} | {:.1} % | {:.0} % | {:.0} %, {:.0} % | {:.1} |\n",
+            "| {name} | {} | {} | {failures} | {:.2} | {:.2} | {:.1} % | {:.0} % | {:.0} %, {:.0} % | {:.2} | {:.1} |\n",
             a.frames,
             a.traced,
             a.median_error_m * 1e3,
@@ -326,6 +326,7 @@ fn table(rows: &[BenchRow]) -> String {
             a.within_2sigma * 100.0,
             a.hidden_points * 100.0,
             a.within_2sigma_hidden * 100.0,
+            a.median_band_sigma_m * 1e3,
             a.median_seconds * 1e3,
         )
     };

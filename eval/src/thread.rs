@@ -190,6 +190,10 @@ pub struct ThreadResult {
     /// Of those, the true points whose nearest point of the trace lies in one of its hidden
     /// spans: within 2σ, and all.
     pub within_2sigma_hidden: (usize, usize),
+    /// The σ the band has at the trace's point nearest each true point, m (how wide the
+    /// band is where the truth is judged; not written with the details).
+    #[serde(skip)]
+    pub band_sigma_m: Vec<f64>,
     /// Time to trace, s.
     pub seconds: f64,
     /// Whether another tool was over the thread.
@@ -221,6 +225,7 @@ pub fn evaluate(
             length_error: f64::NAN,
             within_2sigma: (0, 0),
             within_2sigma_hidden: (0, 0),
+            band_sigma_m: vec![],
             seconds,
             occluded: sample.occluded,
             visible: f64::NAN,
@@ -248,8 +253,11 @@ pub fn compare(t: &ThreadTrace, truth: &[Point], seconds: f64, occluded: bool) -
         arc[i] = arc[i - 1] + (t.points[i] - t.points[i - 1]).norm();
     }
     let (mut inside, mut hidden) = ((0, 0), (0, 0));
+    let mut band_sigma_m = Vec::with_capacity(dense.len());
     for p in &dense {
-        let covered = t.nearest(p).is_some_and(|(_, d, s)| d <= 2.0 * s);
+        let nearest = t.nearest(p);
+        band_sigma_m.extend(nearest.map(|(_, _, s)| s));
+        let covered = nearest.is_some_and(|(_, d, s)| d <= 2.0 * s);
         let in_hidden = stitch_robot::nearest_on_polyline(p, &t.points).is_some_and(|(_, i, f)| {
             let a = arc[i] + f * (arc.get(i + 1).copied().unwrap_or(arc[i]) - arc[i]);
             t.hidden.iter().any(|&[from, to]| (from..=to).contains(&a))
@@ -267,6 +275,7 @@ pub fn compare(t: &ThreadTrace, truth: &[Point], seconds: f64, occluded: bool) -
         length_error: (t.length_m - true_len) / true_len.max(1e-9),
         within_2sigma: inside,
         within_2sigma_hidden: hidden,
+        band_sigma_m,
         seconds,
         occluded,
         seen: t.seen_share,
@@ -295,6 +304,8 @@ pub struct ThreadAccuracy {
     pub hidden_points: f64,
     /// The share of those within 2σ.
     pub within_2sigma_hidden: f64,
+    /// Median of the band's σ where each true point is judged, m.
+    pub median_band_sigma_m: f64,
     /// Median time to trace a pair, s.
     pub median_seconds: f64,
 }
@@ -317,6 +328,11 @@ pub fn accuracy(results: &[ThreadResult]) -> ThreadAccuracy {
     let (hidden_inside, hidden_all) = ok.iter().fold((0, 0), |(a, b), r| {
         (a + r.within_2sigma_hidden.0, b + r.within_2sigma_hidden.1)
     });
+    let mut band: Vec<f64> = ok
+        .iter()
+        .flat_map(|r| r.band_sigma_m.iter().copied())
+        .collect();
+    band.sort_by(f64::total_cmp);
     let mut failures: Vec<(String, usize)> = Vec::new();
     for f in results.iter().filter_map(|r| r.failure.as_ref()) {
         match failures.iter_mut().find(|(k, _)| k == f) {
@@ -334,6 +350,7 @@ pub fn accuracy(results: &[ThreadResult]) -> ThreadAccuracy {
         within_2sigma: inside as f64 / all.max(1) as f64,
         hidden_points: hidden_all as f64 / all.max(1) as f64,
         within_2sigma_hidden: hidden_inside as f64 / hidden_all.max(1) as f64,
+        median_band_sigma_m: crate::percentile(&band, 0.5),
         median_seconds: crate::percentile(&secs, 0.5),
     }
 }
