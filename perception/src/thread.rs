@@ -69,8 +69,8 @@ pub struct ThreadTrace {
     /// frame, m: the fitted curve sampled about every millimetre.
     pub points: Vec<Point>,
     /// Each point's uncertainty: the root of its covariance's trace (its expected distance
-    /// from the truth), m; with a length prior the trace may fall short of, near its hidden
-    /// spans at least half the farthest the thread hidden there can reach (stage 6).
+    /// from the truth), m. Where a length prior says the trace may be short, near its hidden
+    /// spans it is at least half the farthest the thread hidden there can reach (stage 6).
     pub sigma_m: Vec<f64>,
     /// The curve's length, m.
     pub length_m: f64,
@@ -2149,7 +2149,7 @@ mod tests {
     /// span's ends (every point of such a thread is), each against the trace's nearest point
     /// and the σ there; a trace as long as the most there can be keeps its σ.
     #[test]
-    fn a_hidden_span_s_band_holds_any_thread_the_shortfall_allows() {
+    fn the_band_over_a_hidden_span_holds_any_thread_the_shortfall_allows() {
         use rand::Rng;
         use rand_chacha::ChaCha8Rng;
         use rand_chacha::rand_core::SeedableRng;
