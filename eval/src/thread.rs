@@ -18,7 +18,7 @@ use serde::Serialize;
 use std::time::Instant;
 use stitch_perception::PerceptionError;
 use stitch_perception::segment::Segmenter;
-use stitch_perception::thread::{ThreadHint, ThreadParams, ThreadTrace, trace};
+use stitch_perception::thread::{ThreadHint, ThreadParams, ThreadTrace, arc_lengths, trace};
 use stitch_robot::{
     Needle, Point, Pose, RgbImage, StereoCalibration, Vector, distance_to_polyline,
 };
@@ -248,20 +248,15 @@ pub fn compare(t: &ThreadTrace, truth: &[Point], seconds: f64, occluded: bool) -
     let true_len: f64 = truth.windows(2).map(|w| (w[1] - w[0]).norm()).sum();
     let dense = resample(truth, 0.001);
     // Where along the trace each of its points lies, m, to tell the hidden spans.
-    let mut arc = vec![0.0; t.points.len()];
-    for i in 1..t.points.len() {
-        arc[i] = arc[i - 1] + (t.points[i] - t.points[i - 1]).norm();
-    }
+    let arc = arc_lengths(&t.points);
     let (mut inside, mut hidden) = ((0, 0), (0, 0));
     let mut band_sigma_m = Vec::with_capacity(dense.len());
     for p in &dense {
-        let nearest = t.nearest(p);
-        band_sigma_m.extend(nearest.map(|(_, _, s)| s));
-        let covered = nearest.is_some_and(|(_, d, s)| d <= 2.0 * s);
-        let in_hidden = stitch_robot::nearest_on_polyline(p, &t.points).is_some_and(|(_, i, f)| {
-            let a = arc[i] + f * (arc.get(i + 1).copied().unwrap_or(arc[i]) - arc[i]);
-            t.hidden.iter().any(|&[from, to]| (from..=to).contains(&a))
-        });
+        let nearest = t.nearest_along(p, &arc);
+        band_sigma_m.extend(nearest.map(|(_, s, _)| s));
+        let covered = nearest.is_some_and(|(d, s, _)| d <= 2.0 * s);
+        let in_hidden = nearest
+            .is_some_and(|(_, _, a)| t.hidden.iter().any(|&[from, to]| (from..=to).contains(&a)));
         inside.0 += usize::from(covered);
         inside.1 += 1;
         if in_hidden {

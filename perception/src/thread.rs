@@ -89,9 +89,35 @@ impl ThreadTrace {
     /// The trace's point nearest `p`, its distance from `p` and its uncertainty, m.
     pub fn nearest(&self, p: &Point) -> Option<(Point, f64, f64)> {
         let (q, i, t) = stitch_robot::nearest_on_polyline(p, &self.points)?;
-        let s = |k: usize| self.sigma_m.get(k).copied().unwrap_or(0.0);
-        Some((q, (p - q).norm(), s(i) + (s(i + 1) - s(i)) * t))
+        Some((q, (p - q).norm(), between(&self.sigma_m, i, t)))
     }
+
+    /// As [`Self::nearest`], with where that point lies along the trace instead of the
+    /// point: its distance from `p`, its uncertainty and its place from the first end, m
+    /// (`arc_m` the trace's [`arc_lengths`]).
+    pub fn nearest_along(&self, p: &Point, arc_m: &[f64]) -> Option<(f64, f64, f64)> {
+        let (q, i, t) = stitch_robot::nearest_on_polyline(p, &self.points)?;
+        Some((
+            (p - q).norm(),
+            between(&self.sigma_m, i, t),
+            between(arc_m, i, t),
+        ))
+    }
+}
+
+/// `values[i]` to `values[i + 1]`, a share `t` of the way.
+fn between(values: &[f64], i: usize, t: f64) -> f64 {
+    let v = |k: usize| values.get(k).copied().unwrap_or(0.0);
+    v(i) + (v(i + 1) - v(i)) * t
+}
+
+/// Each point's distance along the polyline from its first, m.
+pub fn arc_lengths(points: &[Point]) -> Vec<f64> {
+    let mut arc = vec![0.0; points.len()];
+    for i in 1..points.len() {
+        arc[i] = arc[i - 1] + (points[i] - points[i - 1]).norm();
+    }
+    arc
 }
 
 /// The tracer's settings.
@@ -185,10 +211,7 @@ fn widen_hidden(t: &mut ThreadTrace, most_m: f64) {
     if excess <= 0.0 || t.hidden.is_empty() || t.points.len() < 2 {
         return;
     }
-    let mut arc = vec![0.0; t.points.len()];
-    for i in 1..t.points.len() {
-        arc[i] = arc[i - 1] + (t.points[i] - t.points[i - 1]).norm();
-    }
+    let arc = arc_lengths(&t.points);
     let n = t.points.len();
     let mut widened = t.sigma_m.clone();
     for &[from, to] in &t.hidden {
@@ -779,10 +802,7 @@ fn trace_in(
         };
         let (points, sigma_m, ts) = curve(&fits, true);
         // Arc length in metres at each sample, to place the hidden spans.
-        let mut arc = vec![0.0; points.len()];
-        for i in 1..points.len() {
-            arc[i] = arc[i - 1] + (points[i] - points[i - 1]).norm();
-        }
+        let arc = arc_lengths(&points);
         let at = |tt: f64| -> f64 {
             let i = ts.partition_point(|&x| x < tt).min(ts.len() - 1);
             arc[i]
